@@ -94,4 +94,4 @@ class LogInfo:
 
     @property
     def camera_topics(self) -> list[str]:
-        return [t.topic for t in self.topics if t.is_camera]
+        return sorted(t.topic for t in self.topics if t.is_camera)

@@ -1,0 +1,243 @@
+"""The reader interface every log format implements, and the frame stream built on it."""
+
+from __future__ import annotations
+
+import os
+import sys
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterable, Iterator
+from types import TracebackType
+from typing import Any
+
+from memlog.errors import ImageDecodeError
+from memlog.io.camera import camera_kind, extract_image
+from memlog.io.decoders import UnsupportedEncoding, make_deserializer
+from memlog.io.records import Attachment, ChannelInfo, RawMessage, ReadReport
+from memlog.io.types import Frame, LogInfo, TopicInfo
+
+__all__ = ["LogReader", "FrameError"]
+
+
+class FrameError:
+    """A camera message that could not be turned into a frame (kept for the run report)."""
+
+    def __init__(self, path: str, topic: str, index: int, log_time: int, reason: str) -> None:
+        self.path, self.topic, self.index, self.log_time, self.reason = path, topic, index, log_time, reason
+
+    def __str__(self) -> str:
+        return f"{self.path}: topic {self.topic} message {self.index} (log time {self.log_time}): {self.reason}"
+
+
+def _warn_stderr(text: str) -> None:
+    print(f"memlog: warning: {text}", file=sys.stderr)
+
+
+class LogReader(ABC):
+    """A log opened for streaming. Use :func:`memlog.io.open_log` to get one.
+
+    Subclasses implement :meth:`channels`, :meth:`_iter_messages` and optionally
+    :meth:`metadata` / :meth:`attachments`. Everything streams: no method loads the
+    whole log.
+    """
+
+    format: str = ""
+    profile: str = ""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = os.fspath(path)
+        self.report = ReadReport(self.path)
+        self.on_warning: Callable[[str], None] = _warn_stderr
+
+    # -- to implement -------------------------------------------------------------
+    @abstractmethod
+    def channels(self) -> list[ChannelInfo]:
+        """All channels/connections of the log."""
+
+    @abstractmethod
+    def _iter_messages(
+        self, topics: set[str] | None, start_ns: int | None, end_ns: int | None, log_time_order: bool
+    ) -> Iterator[RawMessage]:
+        """Messages with their untouched bytes."""
+
+    def metadata(self) -> Iterator[tuple[str, dict[str, str]]]:
+        """Metadata records (MCAP only)."""
+        return iter(())
+
+    def attachments(self) -> Iterator[Attachment]:
+        """Attachment records (MCAP only)."""
+        return iter(())
+
+    def message_counts(self) -> dict[int, int] | None:
+        """Messages per channel id from an index, or None when only a full scan can tell."""
+        return None
+
+    def close(self) -> None:
+        """Release the file."""
+
+    # -- shared ---------------------------------------------------------------------
+    def __enter__(self) -> "LogReader":
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None) -> None:
+        self.close()
+
+    def warn(self, text: str) -> None:
+        self.report.warn(text)
+        self.on_warning(text)
+
+    @property
+    def size_bytes(self) -> int:
+        if os.path.isdir(self.path):
+            return sum(
+                os.path.getsize(os.path.join(root, f)) for root, _, files in os.walk(self.path) for f in files
+            )
+        return os.path.getsize(self.path)
+
+    def topics(self) -> list[str]:
+        return sorted({c.topic for c in self.channels()})
+
+    def camera_topics(self) -> list[str]:
+        return sorted({c.topic for c in self.channels() if camera_kind(c.msgtype)})
+
+    def messages(
+        self,
+        topics: Iterable[str] | None = None,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+        log_time_order: bool = True,
+    ) -> Iterator[RawMessage]:
+        """Stream raw messages, optionally filtered by topic and log-time window [start, end)."""
+        wanted = set(topics) if topics is not None else None
+        if wanted is not None:
+            missing = wanted - set(self.topics())
+            if missing:
+                from memlog.errors import LogReadError
+
+                raise LogReadError(
+                    f"{self.path}: no topic {', '.join(sorted(missing))} (topics: {', '.join(self.topics())})"
+                )
+        return self._iter_messages(wanted, start_ns, end_ns, log_time_order)
+
+    def info(self) -> LogInfo:
+        """Topic table: type, encoding, count and time range (uses the index when there is one)."""
+        chans = self.channels()
+        counts = self.message_counts()
+        ranges: dict[int, list[int]] = {}
+        if counts is None:
+            counts = {}
+            for m in self._iter_messages(None, None, None, False):
+                cid = m.channel.id
+                counts[cid] = counts.get(cid, 0) + 1
+                r = ranges.setdefault(cid, [m.log_time, m.log_time])
+                r[0] = min(r[0], m.log_time)
+                r[1] = max(r[1], m.log_time)
+        by_topic: dict[str, TopicInfo] = {}
+        for c in chans:
+            t = by_topic.get(c.topic)
+            rng = ranges.get(c.id)
+            if t is None:
+                t = by_topic[c.topic] = TopicInfo(
+                    c.topic, c.msgtype, c.message_encoding, 0, is_camera=camera_kind(c.msgtype) is not None
+                )
+            t.count += counts.get(c.id, 0)
+            if rng:
+                t.start_ns = rng[0] if t.start_ns is None else min(t.start_ns, rng[0])
+                t.end_ns = rng[1] if t.end_ns is None else max(t.end_ns, rng[1])
+        info = LogInfo(self.path, self.format, self.size_bytes, profile=self.profile, topics=list(by_topic.values()))
+        self._fill_time_range(info)
+        starts = [t.start_ns for t in info.topics if t.start_ns is not None]
+        ends = [t.end_ns for t in info.topics if t.end_ns is not None]
+        if info.start_ns is None and starts:
+            info.start_ns, info.end_ns = min(starts), max(ends)
+        return info
+
+    def _fill_time_range(self, info: LogInfo) -> None:
+        """Hook for formats whose index knows per-topic time ranges."""
+
+    def frames(
+        self,
+        topics: Iterable[str] | None = None,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+        stride: int = 1,
+        errors: list[FrameError] | None = None,
+    ) -> Iterator[Frame]:
+        """Stream camera frames in log-time order, payloads still encoded.
+
+        ``topics`` defaults to every camera topic. ``stride`` keeps every n-th frame of each
+        topic (counted by frame index). Frame indices count every message of the topic from
+        the start of the log, whatever the time window. Messages that do not deserialize are
+        reported (warning + ``errors`` list + ``report.bad_messages``) and skipped.
+        """
+        if stride < 1:
+            raise ValueError("stride must be >= 1")
+        cams = self.camera_topics()
+        if topics is None:
+            wanted = set(cams)
+        else:
+            wanted = set(topics)
+            not_cam = wanted - set(cams)
+            if not_cam:
+                from memlog.errors import LogReadError
+
+                known = set(self.topics())
+                bad = ", ".join(sorted(not_cam))
+                if not_cam - known:
+                    raise LogReadError(f"{self.path}: no topic {bad} (camera topics: {', '.join(cams) or 'none'})")
+                raise LogReadError(f"{self.path}: topic {bad} is not a camera topic (camera topics: {', '.join(cams) or 'none'})")
+        if not wanted:
+            return
+        decoders: dict[int, Any] = {}
+        counters: dict[str, int] = {}
+        # Read from the start so indices are positions on the topic; skip decoding before the window.
+        for m in self._iter_messages(wanted, None, end_ns, True):
+            topic = m.channel.topic
+            idx = counters.get(topic, 0)
+            counters[topic] = idx + 1
+            if start_ns is not None and m.log_time < start_ns:
+                continue
+            if idx % stride:
+                continue
+            frame = self._to_frame(m, idx, decoders, errors)
+            if frame is not None:
+                yield frame
+
+    def _to_frame(
+        self, m: RawMessage, idx: int, decoders: dict[int, Any], errors: list[FrameError] | None
+    ) -> Frame | None:
+        ch = m.channel
+        try:
+            dec = decoders.get(ch.id)
+            if dec is None:
+                dec = decoders[ch.id] = make_deserializer(ch)
+            msg = dec(m.data)
+            stamp, frame_id, payload = extract_image(ch.msgtype, msg)
+        except UnsupportedEncoding as exc:
+            self._frame_error(m, idx, str(exc), errors)
+            return None
+        except Exception as exc:  # a corrupt message must not stop the run
+            self._frame_error(m, idx, f"message does not deserialize as {ch.msgtype}: {type(exc).__name__}: {exc}", errors)
+            return None
+        return Frame(
+            topic=ch.topic,
+            index=idx,
+            log_time_ns=m.log_time,
+            stamp_ns=stamp if stamp is not None else m.log_time,
+            frame_id=frame_id,
+            payload=payload,
+            msgtype=ch.msgtype,
+        )
+
+    def _frame_error(self, m: RawMessage, idx: int, reason: str, errors: list[FrameError] | None) -> None:
+        err = FrameError(self.path, m.channel.topic, idx, m.log_time, reason)
+        self.report.bad_messages += 1
+        if errors is not None:
+            errors.append(err)
+        self.warn(str(err))
+
+    def decode_error(self, frame: Frame, exc: ImageDecodeError) -> FrameError:
+        """Record a frame whose pixels do not decode; returns the error for the caller's list."""
+        err = FrameError(self.path, frame.topic, frame.index, frame.log_time_ns, f"image does not decode: {exc}")
+        self.report.undecodable_frames += 1
+        self.warn(str(err))
+        return err

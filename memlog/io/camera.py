@@ -1,0 +1,100 @@
+"""Which message types carry camera images, and how to pull an :class:`ImagePayload` out of them.
+
+Works on messages decoded by rosbags (attribute access) and on JSON/protobuf messages
+(converted to dicts), for the ROS 1 and ROS 2 spellings of ``sensor_msgs`` and for the
+Foxglove schemas.
+"""
+
+from __future__ import annotations
+
+import base64
+from typing import Any
+
+from memlog.io.types import ImagePayload
+
+__all__ = ["camera_kind", "is_camera_type", "extract_image", "normalize_msgtype"]
+
+_COMPRESSED = {
+    "sensor_msgs/CompressedImage",
+    "foxglove.CompressedImage",
+    "foxglove_msgs/CompressedImage",
+}
+_RAW = {
+    "sensor_msgs/Image",
+    "foxglove.RawImage",
+    "foxglove_msgs/RawImage",
+}
+
+
+def normalize_msgtype(name: str) -> str:
+    """``sensor_msgs/msg/Image`` -> ``sensor_msgs/Image``; ``foxglove.RawImage`` unchanged."""
+    parts = name.split("/")
+    if len(parts) == 3 and parts[1] == "msg":
+        return f"{parts[0]}/{parts[2]}"
+    return name
+
+
+def camera_kind(msgtype: str) -> str | None:
+    """``"compressed"``, ``"raw"`` or None for a message type name."""
+    norm = normalize_msgtype(msgtype)
+    if norm in _COMPRESSED:
+        return "compressed"
+    if norm in _RAW:
+        return "raw"
+    return None
+
+
+def is_camera_type(msgtype: str) -> bool:
+    return camera_kind(msgtype) is not None
+
+
+def _get(msg: Any, name: str, default: Any = None) -> Any:
+    if isinstance(msg, dict):
+        return msg.get(name, default)
+    return getattr(msg, name, default)
+
+
+def _stamp_ns(stamp: Any) -> int | None:
+    if stamp is None:
+        return None
+    sec = _get(stamp, "sec", _get(stamp, "secs", _get(stamp, "seconds")))
+    nsec = _get(stamp, "nanosec", _get(stamp, "nsec", _get(stamp, "nsecs", _get(stamp, "nanos", 0))))
+    if sec is None:
+        return None
+    return int(sec) * 1_000_000_000 + int(nsec or 0)
+
+
+def _as_bytes(data: Any) -> bytes:
+    if isinstance(data, bytes):
+        return data
+    if isinstance(data, str):  # JSON encodes bytes as base64
+        return base64.b64decode(data)
+    if hasattr(data, "tobytes"):
+        return bytes(data.tobytes())
+    return bytes(data)
+
+
+def extract_image(msgtype: str, msg: Any) -> tuple[int | None, str, ImagePayload]:
+    """Return (header stamp in ns or None, frame_id, payload) of a decoded image message."""
+    kind = camera_kind(msgtype)
+    if kind is None:
+        raise ValueError(f"{msgtype} is not an image message type")
+    header = _get(msg, "header")
+    if header is not None:  # sensor_msgs
+        stamp = _stamp_ns(_get(header, "stamp"))
+        frame_id = str(_get(header, "frame_id", "") or "")
+    else:  # foxglove
+        stamp = _stamp_ns(_get(msg, "timestamp"))
+        frame_id = str(_get(msg, "frame_id", "") or "")
+    data = _as_bytes(_get(msg, "data", b""))
+    if kind == "compressed":
+        return stamp, frame_id, ImagePayload("compressed", str(_get(msg, "format", "") or ""), data)
+    return stamp, frame_id, ImagePayload(
+        "raw",
+        str(_get(msg, "encoding", "") or ""),
+        data,
+        width=int(_get(msg, "width", 0) or 0),
+        height=int(_get(msg, "height", 0) or 0),
+        step=int(_get(msg, "step", 0) or 0),
+        is_bigendian=bool(_get(msg, "is_bigendian", False)),
+    )

@@ -1,0 +1,318 @@
+"""Decode camera image messages (compressed streams and raw ROS layouts) to pixels.
+
+Conventions, chosen to match ``cv_bridge`` so frames look the same as in ROS tools:
+
+* Colour output is BGR (OpenCV order); grey sources are replicated to 3 channels by
+  :func:`decode_bgr`, colour is turned to grey with ``cv2.COLOR_BGR2GRAY`` by
+  :func:`decode_gray`. Alpha is dropped, not composited.
+* 16-bit to 8-bit: ``value >> 8`` (cv_bridge scales mono16 -> mono8 by 1/256; it rounds
+  where we floor, so results differ by at most one level and 65535 never saturates).
+* 32-bit float to 8-bit: the image is taken to be in ``[0, 1]``: clipped, times 255,
+  rounded; NaN becomes 0 (cv_bridge's ``convertTo(..., 255)`` does the same).
+* Bayer: ROS names the colour filter by its top-left 2x2 block read row-major, OpenCV by
+  the second row's 2nd/3rd pixels, so ROS ``bayer_rggb8`` is ``cv2.COLOR_BayerBG2BGR``,
+  ``bggr`` -> ``RG``, ``gbrg`` -> ``GR``, ``grbg`` -> ``GB`` (cv_bridge's table).
+* Raw rows are read through a strided view honouring ``step``; only the ``width`` pixels
+  of each row are copied once into the C-contiguous output.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from memlog.errors import ImageDecodeError
+from memlog.io.types import ImagePayload
+
+__all__ = [
+    "SUPPORTED_RAW_ENCODINGS",
+    "decode_bgr",
+    "decode_gray",
+    "decode_native",
+    "is_decodable",
+]
+
+Array = npt.NDArray[np.generic]
+_Convert = Callable[[Array], Array]
+
+
+# --------------------------------------------------------------------------- raw
+
+
+@dataclass(frozen=True)
+class _RawLayout:
+    """How one ROS raw encoding lays out a pixel and how to bring it to BGR/grey."""
+
+    channels: int  # values per pixel as stored (2 for packed YUV 4:2:2)
+    dtype: str  # numpy kind+size without byte order: "u1", "u2", "f4"
+    convert: _Convert | None = None  # stored layout -> native (BGR/BGRA/grey)
+    even_width: bool = False  # packed 4:2:2 needs pixel pairs
+
+    @property
+    def bytes_per_pixel(self) -> int:
+        return self.channels * np.dtype(self.dtype).itemsize
+
+
+def _cvt(code: int) -> _Convert:
+    def convert(arr: Array) -> Array:
+        return np.asarray(cv2.cvtColor(arr, code))
+
+    return convert
+
+
+_RAW_LAYOUTS: dict[str, _RawLayout] = {
+    "mono8": _RawLayout(1, "u1"),
+    "8UC1": _RawLayout(1, "u1"),
+    "8UC3": _RawLayout(3, "u1"),  # cv_bridge treats 8UC3 as bgr8
+    "8UC4": _RawLayout(4, "u1"),  # ... and 8UC4 as bgra8
+    "bgr8": _RawLayout(3, "u1"),
+    "bgra8": _RawLayout(4, "u1"),
+    "rgb8": _RawLayout(3, "u1", _cvt(cv2.COLOR_RGB2BGR)),
+    "rgba8": _RawLayout(4, "u1", _cvt(cv2.COLOR_RGBA2BGRA)),
+    "mono16": _RawLayout(1, "u2"),
+    "16UC1": _RawLayout(1, "u2"),
+    "32FC1": _RawLayout(1, "f4"),
+    # OpenCV's Bayer names are shifted relative to ROS's (see module docstring).
+    "bayer_rggb8": _RawLayout(1, "u1", _cvt(cv2.COLOR_BayerBG2BGR)),
+    "bayer_bggr8": _RawLayout(1, "u1", _cvt(cv2.COLOR_BayerRG2BGR)),
+    "bayer_gbrg8": _RawLayout(1, "u1", _cvt(cv2.COLOR_BayerGR2BGR)),
+    "bayer_grbg8": _RawLayout(1, "u1", _cvt(cv2.COLOR_BayerGB2BGR)),
+    # ROS "yuv422" is UYVY (U0 Y0 V0 Y1); "yuv422_yuy2" is YUYV (Y0 U0 Y1 V0).
+    "yuv422": _RawLayout(2, "u1", _cvt(cv2.COLOR_YUV2BGR_UYVY), even_width=True),
+    "uyvy": _RawLayout(2, "u1", _cvt(cv2.COLOR_YUV2BGR_UYVY), even_width=True),
+    "yuyv": _RawLayout(2, "u1", _cvt(cv2.COLOR_YUV2BGR_YUYV), even_width=True),
+    "yuv422_yuy2": _RawLayout(2, "u1", _cvt(cv2.COLOR_YUV2BGR_YUYV), even_width=True),
+}
+
+SUPPORTED_RAW_ENCODINGS: tuple[str, ...] = tuple(_RAW_LAYOUTS)
+
+_LAYOUT_BY_LOWER = {name.lower(): (name, layout) for name, layout in _RAW_LAYOUTS.items()}
+
+
+@dataclass(frozen=True)
+class _RawGeometry:
+    name: str
+    layout: _RawLayout
+    step: int
+
+
+def _raw_geometry(payload: ImagePayload) -> _RawGeometry:
+    """Validate a raw payload's encoding, size, step and length (no pixel access)."""
+    found = _LAYOUT_BY_LOWER.get(payload.encoding.strip().lower())
+    if found is None:
+        raise ImageDecodeError(
+            f"raw image encoding {payload.encoding!r} is not supported "
+            f"(supported: {', '.join(SUPPORTED_RAW_ENCODINGS)})"
+        )
+    name, layout = found
+    w, h = payload.width, payload.height
+    if w <= 0 or h <= 0:
+        raise ImageDecodeError(f"raw {name} image has invalid size {w}x{h}")
+    if layout.even_width and w % 2:
+        raise ImageDecodeError(f"raw {name} image width {w} must be even (4:2:2 pixel pairs)")
+    row_bytes = w * layout.bytes_per_pixel
+    step = payload.step or row_bytes  # step 0 means tightly packed
+    if step < row_bytes:
+        raise ImageDecodeError(
+            f"raw {name} image {w}x{h} has step {step}, "
+            f"less than width*bytes_per_pixel = {row_bytes}"
+        )
+    needed = step * h
+    if len(payload.data) < needed:
+        raise ImageDecodeError(
+            f"raw {name} image {w}x{h} needs {needed} bytes, message has {len(payload.data)}"
+        )
+    return _RawGeometry(name, layout, step)
+
+
+def _raw_native(payload: ImagePayload) -> Array:
+    """Raw payload -> native pixels; may be a read-only view of ``payload.data``."""
+    geo = _raw_geometry(payload)
+    layout = geo.layout
+    dtype = np.dtype(layout.dtype)
+    if dtype.itemsize > 1:
+        dtype = dtype.newbyteorder(">" if payload.is_bigendian else "<")
+    shape: tuple[int, ...] = (payload.height, payload.width)
+    strides: tuple[int, ...] = (geo.step, layout.bytes_per_pixel)
+    if layout.channels > 1:
+        shape += (layout.channels,)
+        strides += (dtype.itemsize,)
+    view: Array = np.ndarray(shape, dtype=dtype, buffer=payload.data, strides=strides)
+    if dtype.itemsize > 1:  # one copy: swaps bytes if needed, aligns, drops padding
+        view = view.astype(dtype.newbyteorder("="), order="C")
+    if layout.convert is None:
+        return view
+    try:
+        return layout.convert(view)
+    except cv2.error as exc:
+        raise ImageDecodeError(f"raw {geo.name} image does not convert: {exc}") from exc
+
+
+# ------------------------------------------------------------------- compressed
+
+# Leading bytes of the streams cv2.imdecode reads in the opencv-python wheels.
+_MAGIC: tuple[tuple[str, Callable[[bytes], bool]], ...] = (
+    ("JPEG", lambda b: b.startswith(b"\xff\xd8\xff")),
+    ("PNG", lambda b: b.startswith(b"\x89PNG\r\n\x1a\n")),
+    ("WebP", lambda b: b[:4] == b"RIFF" and b[8:12] == b"WEBP"),
+    ("BMP", lambda b: b.startswith(b"BM")),
+    ("TIFF", lambda b: b[:4] in (b"II*\x00", b"MM\x00*")),
+    ("GIF", lambda b: b[:6] in (b"GIF87a", b"GIF89a")),
+    ("JPEG 2000", lambda b: b.startswith((b"\x00\x00\x00\x0cjP  \r\n\x87\n", b"\xff\x4f\xff\x51"))),
+    ("PNM", lambda b: len(b) > 2 and b[:1] == b"P" and b[1:2] in b"1234567" and b[2:3].isspace()),
+    ("Radiance HDR", lambda b: b.startswith((b"#?RADIANCE", b"#?RGBE"))),
+    ("AVIF", lambda b: b[4:12] in (b"ftypavif", b"ftypavis")),
+)
+
+
+def _sniff(data: bytes) -> str | None:
+    """Name of the image container ``data`` starts with, or None."""
+    head = bytes(data[:16])
+    return next((name for name, match in _MAGIC if match(head)), None)
+
+
+def _format_codec(fmt: str) -> str:
+    """Codec word of a format string: ``"bgr8; jpeg compressed bgr8"`` -> ``"jpeg"``."""
+    text = fmt.split(";", 1)[1] if ";" in fmt else fmt
+    words = text.split()
+    return words[0].lower() if words else ""
+
+
+def _check_compressed(payload: ImagePayload) -> str:
+    """Reject what cannot be a camera frame; return a codec name for messages."""
+    if "compresseddepth" in payload.encoding.lower():
+        raise ImageDecodeError(
+            "compressedDepth is not supported (depth images are not camera frames)"
+        )
+    if len(payload.data) == 0:
+        raise ImageDecodeError(f"compressed image (format {payload.encoding!r}) has no data")
+    codec = _format_codec(payload.encoding)
+    return codec.upper() if codec else (_sniff(payload.data) or "image")
+
+
+def _compressed_native(payload: ImagePayload) -> Array:
+    """Compressed payload -> pixels as cv2.imdecode gives them (grey, BGR or BGRA).
+
+    The byte stream is sniffed by OpenCV, so the format string only names things in
+    messages. For ``"rgb8; jpeg compressed bgr8"`` style formats image_transport's
+    compressed plugin converted the image to bgr8 before imencode (the part after
+    "compressed" says so) and, on decode, converts imdecode's BGR back to the
+    first-named encoding; the stored stream is a normal colour image, so imdecode's
+    BGR is already the right colour and we return it unchanged. IMREAD_UNCHANGED keeps
+    bit depth and alpha and ignores EXIF rotation (camera frames are stored as taken).
+    """
+    codec = _check_compressed(payload)
+    buf = np.frombuffer(payload.data, dtype=np.uint8)
+    try:
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise ImageDecodeError(f"{codec} data does not decode: {exc}") from exc
+    if img is None or img.size == 0:
+        raise ImageDecodeError(
+            f"{codec} data does not decode ({len(payload.data)} bytes, "
+            f"format {payload.encoding!r})"
+        )
+    arr: Array = np.asarray(img)
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    return arr
+
+
+# ----------------------------------------------------------------- conversions
+
+
+def _native(payload: ImagePayload) -> Array:
+    """Dispatch on ``payload.kind``; the result may still view ``payload.data``."""
+    if payload.kind == "compressed":
+        return _compressed_native(payload)
+    if payload.kind == "raw":
+        return _raw_native(payload)
+    raise ImageDecodeError(f"unknown image payload kind {payload.kind!r}")
+
+
+def _to_uint8(arr: Array) -> npt.NDArray[np.uint8]:
+    """Bring any decoded depth to uint8 (16-bit: >> 8; float: [0, 1] -> [0, 255])."""
+    if arr.dtype == np.uint8:
+        return arr.astype(np.uint8, copy=False)
+    if arr.dtype == np.uint16:
+        return (arr >> 8).astype(np.uint8)
+    if arr.dtype.kind == "f":
+        clipped = np.clip(np.nan_to_num(arr, nan=0.0), 0.0, 1.0)
+        return np.rint(clipped * 255.0).astype(np.uint8)
+    raise ImageDecodeError(f"decoded pixels have unsupported type {arr.dtype}")
+
+
+def _channels(arr: Array) -> int:
+    channels = 1 if arr.ndim == 2 else int(arr.shape[2])
+    if channels not in (1, 3, 4):
+        raise ImageDecodeError(f"decoded image has unsupported shape {arr.shape}")
+    return channels
+
+
+def _owned(arr: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+    """C-contiguous, writeable array not sharing memory with the payload."""
+    return np.require(arr, requirements=["C", "W", "O"])
+
+
+# ------------------------------------------------------------------------- API
+
+
+def decode_native(payload: ImagePayload) -> Array:
+    """Decoded pixels before 8-bit conversion: grey (HxW), BGR or BGRA (HxWx3/4).
+
+    Keeps the source depth: mono16/16UC1 and 16-bit PNGs stay uint16, 32FC1 stays
+    float32 (native byte order). Raises :class:`ImageDecodeError`.
+    """
+    arr = _native(payload)
+    _channels(arr)
+    return np.require(arr, requirements=["C", "W", "O"])
+
+
+def decode_bgr(payload: ImagePayload) -> npt.NDArray[np.uint8]:
+    """Decode to an HxWx3 uint8 BGR array (C-contiguous). Raises :class:`ImageDecodeError`."""
+    img = _to_uint8(_native(payload))
+    channels = _channels(img)
+    if channels == 1:
+        img = np.asarray(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
+    elif channels == 4:
+        img = np.asarray(cv2.cvtColor(img, cv2.COLOR_BGRA2BGR), dtype=np.uint8)
+    return _owned(img)
+
+
+def decode_gray(payload: ImagePayload) -> npt.NDArray[np.uint8]:
+    """Decode to an HxW uint8 grey array (C-contiguous). Raises :class:`ImageDecodeError`."""
+    img = _to_uint8(_native(payload))
+    channels = _channels(img)
+    if channels == 3:
+        img = np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
+    elif channels == 4:
+        img = np.asarray(cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY), dtype=np.uint8)
+    return _owned(img)
+
+
+def is_decodable(payload: ImagePayload) -> tuple[bool, str]:
+    """Cheap check without decoding pixels: ``(True, "")`` or ``(False, reason)``.
+
+    Raw payloads get the full size/step/length validation; compressed payloads must
+    not be compressedDepth and must start like an image stream OpenCV reads (a corrupt
+    body behind a valid header is only found by decoding).
+    """
+    try:
+        if payload.kind == "raw":
+            _raw_geometry(payload)
+        elif payload.kind == "compressed":
+            codec = _check_compressed(payload)
+            if _sniff(payload.data) is None:
+                raise ImageDecodeError(
+                    f"{codec} data is not a recognised image stream "
+                    f"(format {payload.encoding!r}, starts {bytes(payload.data[:8])!r})"
+                )
+        else:
+            raise ImageDecodeError(f"unknown image payload kind {payload.kind!r}")
+    except ImageDecodeError as exc:
+        return False, str(exc)
+    return True, ""

@@ -1,0 +1,225 @@
+"""Memorability map and score MS of a frame (SPEC "Memorability map", reference conventions).
+
+The 1135 x 1135 BGR frame is cut into a row-major 5 x 5 grid of 227 x 227 RGB crops (float32
+/255, NCHW, no mean/std), each crop is scored by ResMem giving the 5 x 5 matrix M, M is
+upsampled to 1135 x 1135 with ``cv2.resize(..., INTER_LINEAR)`` and MS = sum(map * S) / 1135^2.
+
+Because the upsampling is linear in M, MS = sum_k w_k M_k with weights
+w = A^T S A / 1135^2, where A (1135 x 5) is the interpolation matrix of ``cv2.resize`` (its
+bilinear resize is separable: map = A M A^T). With a threshold MT, crops are scored in small
+batches by decreasing weight and scoring stops as soon as the bounds (unscored crops at 0 or
+at 1; ResMem outputs lie in 0..1) decide MS >= MT; crops of weight 0 (fully dynamic) are never
+scored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+import onnxruntime as ort
+
+from memlog.errors import ScoringError
+from memlog.models.resmem import INPUT_NAME, OUTPUT_NAME, resmem_onnx_path
+
+__all__ = [
+    "FRAME",
+    "GRID",
+    "crops_from_frame",
+    "memorability_matrix",
+    "memorability_map",
+    "memorability_score",
+    "crop_weights",
+    "MemorabilityResult",
+    "Memorability",
+]
+
+FRAME = 1135
+GRID = 5
+CROP = FRAME // GRID
+#: Margin by which bounds must clear MT before an early decision (float rounding of MS).
+DECISION_MARGIN = 1e-6
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+
+
+def crops_from_frame(bgr1135: npt.NDArray[Any]) -> F32:
+    """[25,3,227,227] float32 crops (RGB /255) of a 1135 x 1135 BGR uint8 frame, row-major."""
+    if not isinstance(bgr1135, np.ndarray):
+        raise ScoringError(f"frame must be a numpy array, got {type(bgr1135).__name__}")
+    if bgr1135.shape != (FRAME, FRAME, 3):
+        raise ScoringError(
+            f"frame must be {FRAME}x{FRAME}x3 BGR (resize with cv2.resize first), got shape {bgr1135.shape}"
+        )
+    if bgr1135.dtype != np.uint8:
+        raise ScoringError(f"frame must be uint8 BGR, got dtype {bgr1135.dtype}")
+    rgb = bgr1135[:, :, ::-1]
+    grid = rgb.reshape(GRID, CROP, GRID, CROP, 3).transpose(0, 2, 4, 1, 3)
+    crops = grid.reshape(GRID * GRID, 3, CROP, CROP).astype(np.float32)
+    crops /= np.float32(255.0)
+    return crops
+
+
+def _check_crops(crops: npt.NDArray[Any]) -> None:
+    if not isinstance(crops, np.ndarray) or crops.ndim != 4 or crops.shape[1:] != (3, CROP, CROP):
+        shape = getattr(crops, "shape", None)
+        raise ScoringError(f"crops must be [N,3,{CROP},{CROP}], got {shape}")
+    if crops.dtype != np.float32:
+        raise ScoringError(f"crops must be float32, got {crops.dtype}")
+
+
+def _run(session: ort.InferenceSession, crops: F32) -> F32:
+    """Scores (N,) of a crop batch."""
+    try:
+        out = session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(crops)})[0]
+    except Exception as exc:  # onnxruntime raises its own exception types
+        raise ScoringError(f"memorability model failed: {exc}") from exc
+    return np.asarray(out, dtype=np.float32).reshape(-1)
+
+
+def memorability_matrix(session: ort.InferenceSession, crops: F32, *, batch: int = 25) -> F32:
+    """Score all 25 crops (in batches of ``batch``) and return the 5 x 5 matrix M (float32)."""
+    _check_crops(crops)
+    if crops.shape[0] != GRID * GRID:
+        raise ScoringError(f"need {GRID * GRID} crops, got {crops.shape[0]}")
+    if batch < 1:
+        raise ScoringError(f"batch must be >= 1, got {batch}")
+    scores = np.concatenate([_run(session, crops[i:i + batch]) for i in range(0, len(crops), batch)])
+    return scores.reshape(GRID, GRID)
+
+
+def _check_matrix(m: npt.NDArray[Any]) -> None:
+    if not isinstance(m, np.ndarray) or m.shape != (GRID, GRID):
+        raise ScoringError(f"M must be a {GRID}x{GRID} array, got {getattr(m, 'shape', None)}")
+    if not np.all(np.isfinite(m)):
+        raise ScoringError("M has non-finite entries (unscored crops?)")
+
+
+def _check_static(s: npt.NDArray[Any]) -> F64:
+    if not isinstance(s, np.ndarray) or s.shape != (FRAME, FRAME):
+        raise ScoringError(f"static map must be {FRAME}x{FRAME}, got {getattr(s, 'shape', None)}")
+    s64 = s.astype(np.float64)
+    if not np.all((s64 >= 0) & (s64 <= 1)):
+        raise ScoringError("static map values must lie in 0..1")
+    return s64
+
+
+def memorability_map(m: npt.NDArray[Any]) -> F64:
+    """Bilinear upsampling of M to 1135 x 1135 (``cv2.resize``, INTER_LINEAR, float64)."""
+    _check_matrix(m)
+    return np.asarray(
+        cv2.resize(m.astype(np.float64), (FRAME, FRAME), interpolation=cv2.INTER_LINEAR), dtype=np.float64
+    )
+
+
+def memorability_score(m: npt.NDArray[Any], s: npt.NDArray[Any] | None = None) -> float:
+    """MS = sum(map * S) / 1135^2 (S = all static when None)."""
+    up = memorability_map(m)
+    if s is None:
+        return float(up.sum() / (FRAME * FRAME))
+    return float((up * _check_static(s)).sum() / (FRAME * FRAME))
+
+
+@lru_cache(maxsize=1)
+def _interp_matrix() -> F64:
+    """A (1135 x 5) with cv2.resize(M) == A @ M @ A.T for INTER_LINEAR (read off cv2 itself)."""
+    a = cv2.resize(np.eye(GRID, dtype=np.float64), (GRID, FRAME), interpolation=cv2.INTER_LINEAR)
+    a = np.asarray(a, dtype=np.float64)
+    a.setflags(write=False)
+    return a
+
+
+def crop_weights(s: npt.NDArray[Any] | None = None) -> F64:
+    """5 x 5 weights w with MS = sum(w * M) for every M: w = A^T S A / 1135^2 (sums to SS)."""
+    a = _interp_matrix()
+    if s is None:
+        col = a.sum(axis=0)
+        return np.asarray(np.outer(col, col) / (FRAME * FRAME), dtype=np.float64)
+    return np.asarray(a.T @ _check_static(s) @ a / (FRAME * FRAME), dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class MemorabilityResult:
+    """Outcome of scoring one frame.
+
+    ``m``: 5 x 5 scores, NaN for crops that were not scored. ``exact``: every crop of non-zero
+    weight was scored, so ``ms`` is MS and ``ms_low == ms == ms_high``; otherwise ``ms`` is None
+    and MS lies in [``ms_low``, ``ms_high``]. ``passed``: MS >= threshold (None without one).
+    """
+
+    m: F32
+    ms: float | None
+    ms_low: float
+    ms_high: float
+    exact: bool
+    n_scored: int
+    passed: bool | None
+
+
+class Memorability:
+    """ResMem on onnxruntime (CPU) scoring 1135 x 1135 frames."""
+
+    def __init__(self, onnx_path: Path | None = None, *, threads: int | None = None, batch: int = 5) -> None:
+        """Open the prepared ResMem ONNX model (default: :func:`resmem_onnx_path`).
+
+        ``threads``: intra-op threads (None: onnxruntime's default, all cores). ``batch``:
+        default number of crops per inference call.
+        """
+        if batch < 1:
+            raise ScoringError(f"batch must be >= 1, got {batch}")
+        path = resmem_onnx_path() if onnx_path is None else Path(onnx_path)
+        opts = ort.SessionOptions()
+        if threads is not None:
+            opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+        self.batch = batch
+        self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+
+    def score_crops(self, crops: F32) -> F32:
+        """Scores (N,) of crops [N,3,227,227] float32, in one inference call."""
+        _check_crops(crops)
+        return _run(self.session, crops)
+
+    def __call__(
+        self,
+        bgr1135: npt.NDArray[Any],
+        static_map: npt.NDArray[Any] | None = None,
+        threshold: float | None = None,
+        batch: int | None = None,
+    ) -> MemorabilityResult:
+        """Score a frame; with ``threshold`` stop as soon as MS >= threshold is decided."""
+        bs = self.batch if batch is None else batch
+        if bs < 1:
+            raise ScoringError(f"batch must be >= 1, got {bs}")
+        crops = crops_from_frame(bgr1135)
+        w = crop_weights(static_map).reshape(-1)
+        order = [int(k) for k in np.argsort(-w, kind="stable") if w[k] > 0]
+        m = np.full(GRID * GRID, np.nan, dtype=np.float32)
+        done = 0.0  # sum of w_k M_k over scored crops
+        left = float(w[order].sum())  # weight of unscored crops
+        n = 0
+        while n < len(order):
+            if threshold is not None:
+                if done >= threshold + DECISION_MARGIN:
+                    return self._result(m, done, done + max(left, 0.0), n, True)
+                if done + left < threshold - DECISION_MARGIN:
+                    return self._result(m, done, done + max(left, 0.0), n, False)
+            idx = order[n:n + bs]
+            m[idx] = _run(self.session, crops[idx])
+            done += float(np.dot(w[idx], m[idx].astype(np.float64)))
+            left -= float(w[idx].sum())
+            n += len(idx)
+        full = np.where(np.isnan(m), 0.0, m).reshape(GRID, GRID)
+        ms = memorability_score(full, static_map)
+        passed = None if threshold is None else ms >= threshold
+        return MemorabilityResult(m.reshape(GRID, GRID), ms, ms, ms, True, n, passed)
+
+    @staticmethod
+    def _result(m: F32, low: float, high: float, n: int, passed: bool) -> MemorabilityResult:
+        return MemorabilityResult(m.reshape(GRID, GRID), None, low, high, False, n, passed)

@@ -1,0 +1,353 @@
+"""Coverage-keeping selection: one best frame per place segment of the drive.
+
+The drive is cut into consecutive place segments, by one of
+
+* ``"distance"``: cumulative path length of the known positions (unknown rows carry the
+  last known length), a new segment every ``spacing_m`` metres;
+* ``"time"``: log time, a new segment every ``spacing_s`` seconds;
+* ``"count"``: frame count, ``spacing_frames`` frames per segment;
+* ``"view"``: a new segment starts when the cosine distance between a frame's descriptor
+  and the descriptor of the segment's first frame exceeds ``view_distance``.
+
+With ``keep_fraction=F`` instead of a spacing, the number of segments is
+``S = max(1, floor(F*N + 0.5))`` and the drive's total length (metres, seconds or
+frames) is split into S equal parts; ``by="auto"`` then uses distance when positions
+exist and the robot moved, else time when the timestamps span > 0, else frame count.
+Bins that hold no frame (the robot jumped, a time gap) are not segments.
+
+Each segment keeps its best frame by a combined score among the frames that pass the
+minimum thresholds ``min_ms``/``min_ss``/``min_es`` (NaN fails); a segment none of whose
+frames passes is dropped and reported as a :class:`~memlog.selection.table.Gap`.
+
+Combined score. The default ``combine="rank"`` is the weighted mean of the three
+per-criterion percentile ranks within the drive (mid-rank of ties, in (0, 1)). Ranks are
+scale-free: they do not change under any increasing transform of a criterion, so the
+choice works at any image resolution (where ES is low everywhere) and weights mean the
+same on every drive; a criterion that is constant over the drive (SS == 1.0 everywhere)
+ranks 0.5 everywhere and simply drops out. ``combine="geometric"`` is the weighted
+geometric mean of the raw scores; its per-segment argmax is also invariant to rescaling
+one criterion by a constant, but a zero in any criterion zeroes the frame. Ties go to the
+earliest frame of the segment.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import asdict, dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from memlog.errors import ConfigError
+from memlog.selection._checks import finite_number, fraction, positive_int, positive_number
+from memlog.selection.paper import codes_to_reasons, first_failing
+from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
+
+__all__ = ["SegmentConfig", "select_segments", "segment_ids", "combined_score", "percentile_ranks"]
+
+SegmentBy = Literal["auto", "distance", "time", "count", "view"]
+Combine = Literal["rank", "geometric"]
+_BY = ("auto", "distance", "time", "count", "view")
+_COMBINE = ("rank", "geometric")
+
+
+@dataclass(frozen=True)
+class SegmentConfig:
+    """Settings of :func:`select_segments` (set exactly one of ``keep_fraction``,
+    ``spacing_m``, ``spacing_s``, ``spacing_frames``; none for ``by="view"``)."""
+
+    by: SegmentBy = "auto"
+    keep_fraction: float | None = None
+    spacing_m: float | None = None
+    spacing_s: float | None = None
+    spacing_frames: int | None = None
+    view_distance: float = 0.3
+    min_ms: float = 0.05
+    min_ss: float = 0.1
+    min_es: float = 0.05
+    weights: tuple[float, float, float] = (1.0, 1.0, 1.0)  # (ms, ss, es)
+    combine: Combine = "rank"
+
+    def __post_init__(self) -> None:
+        if self.by not in _BY:
+            raise ConfigError(f"segment by must be one of {_BY}, got {self.by!r}")
+        if self.combine not in _COMBINE:
+            raise ConfigError(f"segment combine must be one of {_COMBINE}, got {self.combine!r}")
+        sizes = {
+            k: getattr(self, k)
+            for k in ("keep_fraction", "spacing_m", "spacing_s", "spacing_frames")
+            if getattr(self, k) is not None
+        }
+        if self.by == "view":
+            if sizes:
+                raise ConfigError(
+                    f"segment by='view' is sized by view_distance; unset {sorted(sizes)}"
+                )
+            v = finite_number("view_distance", self.view_distance)
+            if not 0.0 < v <= 2.0:
+                raise ConfigError(f"view_distance must be in (0, 2], got {self.view_distance!r}")
+        elif len(sizes) != 1:
+            raise ConfigError(
+                "segment selection needs exactly one of keep_fraction, spacing_m, spacing_s, "
+                f"spacing_frames; got {sorted(sizes) or 'none'}"
+            )
+        if self.keep_fraction is not None:
+            fraction("keep_fraction", self.keep_fraction)
+        implied = {"spacing_m": "distance", "spacing_s": "time", "spacing_frames": "count"}
+        for key, by in implied.items():
+            if getattr(self, key) is None:
+                continue
+            if key == "spacing_frames":
+                positive_int(key, self.spacing_frames)
+            else:
+                positive_number(key, getattr(self, key))
+            if self.by not in ("auto", by):
+                raise ConfigError(f"{key} segments by {by}, but by={self.by!r}")
+        for key in ("min_ms", "min_ss", "min_es"):
+            finite_number(key, getattr(self, key))
+        w = tuple(self.weights)
+        if len(w) != 3:
+            raise ConfigError(f"weights must be three numbers (ms, ss, es), got {self.weights!r}")
+        wf = [finite_number("weight", x) for x in w]
+        if min(wf) < 0 or sum(wf) <= 0:
+            raise ConfigError(f"weights must be >= 0 with a positive sum, got {self.weights!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Settings as a plain dict."""
+        d = asdict(self)
+        d["weights"] = list(self.weights)
+        return d
+
+
+def percentile_ranks(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Mid-rank percentile of each value among the finite values: (#less + #equal/2) / n.
+
+    In (0, 1); ties share a rank; NaN stays NaN.
+    """
+    out = np.full(x.shape, np.nan)
+    ok = np.isfinite(x)
+    v = np.sort(x[ok])
+    if v.size:
+        left = np.searchsorted(v, x[ok], side="left")
+        right = np.searchsorted(v, x[ok], side="right")
+        out[ok] = (left + right) / (2.0 * v.size)
+    return out
+
+
+def combined_score(
+    table: ScoreTable,
+    weights: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    combine: Combine = "rank",
+) -> NDArray[np.float64]:
+    """Per-frame combined score of (MS, SS, ES) with weights (ms, ss, es); NaN if any used
+    score is NaN. See the module docstring for the choice."""
+    w = np.asarray(weights, dtype=np.float64)
+    cols = (table.ms, table.ss, table.es)
+    used = [i for i in range(3) if w[i] > 0]
+    if combine == "rank":
+        ranks = [percentile_ranks(cols[i]) for i in used]
+        return np.asarray(sum(w[i] * r for i, r in zip(used, ranks)) / w[used].sum(), dtype=np.float64)
+    if combine == "geometric":
+        with np.errstate(divide="ignore", invalid="ignore"):
+            logs = [w[i] * np.log(np.clip(cols[i], 0.0, None)) for i in used]
+            return np.asarray(np.exp(sum(logs) / w[used].sum()), dtype=np.float64)
+    raise ConfigError(f"combine must be one of {_COMBINE}, got {combine!r}")
+
+
+def _path_length(table: ScoreTable) -> NDArray[np.float64]:
+    """Cumulative travelled distance per row; unknown positions carry the last value."""
+    assert table.positions is not None
+    known = table.known_positions()
+    s = np.zeros(table.n)
+    rows = np.flatnonzero(known)
+    if rows.size >= 2:
+        steps = np.linalg.norm(np.diff(table.positions[rows], axis=0), axis=1)
+        s_known = np.concatenate([[0.0], np.cumsum(steps)])
+        # carry forward: row r gets the length at the last known row <= r (0 before any)
+        pos = np.searchsorted(rows, np.arange(table.n), side="right") - 1
+        s = np.where(pos >= 0, s_known[np.clip(pos, 0, None)], 0.0)
+    return s
+
+
+def _bins(value: NDArray[np.float64], width: float, n_bins: int | None) -> NDArray[np.int64]:
+    """floor(value / width), clipped to n_bins - 1 when given."""
+    b = np.floor(value / width).astype(np.int64)
+    if n_bins is not None:
+        b = np.clip(b, 0, n_bins - 1)
+    return b
+
+
+def _view_segments(table: ScoreTable, view_distance: float) -> NDArray[np.int64]:
+    """Segment ids by view change: new segment when 1 - <d_i, d_anchor> > view_distance."""
+    assert table.descriptors is not None
+    n = table.n
+    d = table.descriptors
+    known = table.known_descriptors()
+    seg = np.zeros(n, dtype=np.int64)
+    sid = 0
+    anchor = -1  # row of the segment's first frame with a known descriptor
+    start = 0
+    while start < n:
+        if anchor < 0:
+            if known[start]:
+                anchor = start
+            seg[start] = sid
+            start += 1
+            continue
+        block = 32
+        found = -1
+        i = start
+        while i < n and found < 0:
+            j = min(n, i + block)
+            with np.errstate(invalid="ignore"):
+                dist = 1.0 - d[i:j].astype(np.float64) @ d[anchor].astype(np.float64)
+            over = np.flatnonzero(known[i:j] & (dist > view_distance))
+            if over.size:
+                found = i + int(over[0])
+                j = found
+            seg[i:j] = sid
+            i = j
+            block *= 2
+        if found < 0:
+            break
+        sid += 1
+        seg[found] = sid
+        anchor = found
+        start = found + 1
+    return seg
+
+
+def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.int64], dict[str, Any]]:
+    """Place segment of each row (0..S-1, non-decreasing) and a description of the cut."""
+    n = table.n
+    info: dict[str, Any] = {}
+    if n == 0:
+        return np.zeros(0, dtype=np.int64), {"by": config.by, "n_segments": 0}
+    by = config.by
+    has_pos = table.positions is not None and int(np.count_nonzero(table.known_positions())) >= 2
+    if by == "auto":
+        if config.spacing_m is not None:
+            by = "distance"
+        elif config.spacing_s is not None:
+            by = "time"
+        elif config.spacing_frames is not None:
+            by = "count"
+        else:
+            moved = has_pos and float(_path_length(table)[-1]) > 0.0
+            by = "distance" if moved else ("time" if table.t_ns[-1] > table.t_ns[0] else "count")
+    if by == "distance" and table.positions is None:
+        raise ConfigError("segment by='distance' needs positions, but the score table has none")
+    if by == "view" and table.descriptors is None:
+        raise ConfigError("segment by='view' needs descriptors, but the score table has none")
+    n_seg = (
+        max(1, int(np.floor(config.keep_fraction * n + 0.5)))
+        if config.keep_fraction is not None
+        else None
+    )
+    raw: NDArray[np.int64]
+    if by == "count":
+        if config.spacing_frames is not None:
+            raw = np.arange(n, dtype=np.int64) // config.spacing_frames
+            info["spacing_frames"] = config.spacing_frames
+        else:
+            assert n_seg is not None
+            raw = (np.arange(n, dtype=np.int64) * n_seg) // n
+            info["spacing_frames"] = n / n_seg
+    elif by == "time":
+        dt = (table.t_ns - table.t_ns[0]).astype(np.float64)
+        span = float(dt[-1])
+        if config.spacing_s is not None:
+            width = config.spacing_s * 1e9
+            raw = _bins(dt, width, None)
+        elif span > 0:
+            assert n_seg is not None
+            width = span / n_seg
+            raw = _bins(dt * n_seg / span, 1.0, n_seg)
+        else:
+            width = 0.0
+            raw = np.zeros(n, dtype=np.int64)
+            info["note"] = "timestamps span 0 s: one segment"
+        info["spacing_s"] = width / 1e9
+    elif by == "distance":
+        s = _path_length(table)
+        total = float(s[-1])
+        info["path_length_m"] = total
+        if config.spacing_m is not None:
+            width = config.spacing_m
+            raw = _bins(s, width, None)
+        elif total > 0:
+            assert n_seg is not None
+            width = total / n_seg
+            raw = _bins(s * n_seg / total, 1.0, n_seg)
+        else:
+            width = 0.0
+            raw = np.zeros(n, dtype=np.int64)
+            info["note"] = "the robot did not move (path length 0 m): one segment"
+        info["spacing_m"] = width
+    else:  # view
+        raw = _view_segments(table, config.view_distance)
+        info["view_distance"] = config.view_distance
+    # relabel to consecutive ids (bins without frames are not segments)
+    change = np.concatenate([[0], (np.diff(raw) != 0).astype(np.int64)])
+    seg = np.cumsum(change).astype(np.int64)
+    info["by"] = by
+    info["n_segments"] = int(seg[-1]) + 1
+    if n_seg is not None:
+        info["n_bins"] = n_seg
+    return seg, info
+
+
+def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> Selection:
+    """Keep the best frame (by :func:`combined_score`) of each place segment among those
+    passing the minimum thresholds; segments with no passing frame become gaps."""
+    cfg = config if config is not None else SegmentConfig(keep_fraction=0.1)
+    n = table.n
+    seg, info = segment_ids(table, cfg)
+    code = first_failing(table, cfg.min_ms, cfg.min_ss, cfg.min_es)
+    passing = code == 0
+    score = combined_score(table, cfg.weights, cfg.combine)
+    keep = np.zeros(n, dtype=bool)
+    gaps: list[Gap] = []
+    if n:
+        eff = np.where(passing & np.isfinite(score), score, -np.inf)
+        rows = np.arange(n)
+        order = np.lexsort((rows, -eff, seg))  # by segment, best score first, earliest first
+        first_in_seg = np.concatenate([[True], seg[order][1:] != seg[order][:-1]])
+        best = order[first_in_seg]
+        keep[best[passing[best]]] = True
+        starts = np.flatnonzero(np.concatenate([[True], seg[1:] != seg[:-1]]))
+        ends = np.concatenate([starts[1:], [n]]) - 1
+        for sid, b in enumerate(best.tolist()):
+            if passing[b]:
+                continue
+            a, e = int(starts[sid]), int(ends[sid])
+            counts = Counter(CRITERIA[c - 1] for c in code[a : e + 1].tolist())
+            reason = max(CRITERIA, key=lambda c: (counts.get(c, 0), -CRITERIA.index(c)))
+            gaps.append(
+                Gap(
+                    segment=sid,
+                    start_index=int(table.index[a]),
+                    end_index=int(table.index[e]),
+                    start_t_ns=int(table.t_ns[a]),
+                    end_t_ns=int(table.t_ns[e]),
+                    n_frames=e - a + 1,
+                    reason=reason,
+                    counts={c: counts[c] for c in CRITERIA if counts.get(c)},
+                )
+            )
+    reason = codes_to_reasons(code)
+    reasons: list[str | None] = [
+        None if k else ("segment" if r is None else r) for k, r in zip(keep.tolist(), reason)
+    ]
+    info.update({"combine": cfg.combine, "weights": list(cfg.weights), "n_gaps": len(gaps)})
+    return Selection(
+        mode="segment",
+        index=table.index,
+        keep=keep,
+        reason=reasons,
+        thresholds={"mt": float(cfg.min_ms), "st": float(cfg.min_ss), "et": float(cfg.min_es)},
+        gaps=gaps,
+        info=info,
+        segment_id=seg,
+    )
