@@ -209,7 +209,12 @@ class LogReader(ABC):
         try:
             dec = decoders.get(ch.id)
             if dec is None:
-                dec = decoders[ch.id] = make_deserializer(ch)
+                try:
+                    dec = decoders[ch.id] = make_deserializer(ch)
+                except UnsupportedEncoding as exc:
+                    dec = decoders[ch.id] = exc  # parse the schema once; report every message
+            if isinstance(dec, UnsupportedEncoding):
+                raise dec
             msg = dec(m.data)
             stamp, frame_id, payload = extract_image(ch.msgtype, msg)
         except UnsupportedEncoding as exc:

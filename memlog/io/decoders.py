@@ -10,6 +10,7 @@ type stores are used.
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable
 from typing import Any
 
@@ -29,7 +30,12 @@ def _typestore_from_definition(name: str, text: str, schema_encoding: str) -> An
 
     store = get_typestore(Stores.EMPTY)
     if schema_encoding == "ros2idl":
-        types = get_types_from_idl(text)
+        # MCAP ros2idl: the main IDL, then each dependency after a line of '=' and "IDL: pkg/msg/Name"
+        types = {}
+        for section in re.split(r"^=+\s*$", text, flags=re.M):
+            body = "\n".join(line for line in section.splitlines() if not line.startswith("IDL: "))
+            if body.strip():
+                types.update(get_types_from_idl(body))
     else:
         types = get_types_from_msg(text, name)
     store.register(types)

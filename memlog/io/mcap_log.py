@@ -40,6 +40,14 @@ def _schema_info(s: Schema | None) -> SchemaInfo | None:
     return SchemaInfo(s.name, s.encoding, bytes(s.data))
 
 
+def _why(exc: BaseException) -> str:
+    from mcap.exceptions import EndOfFile
+
+    if isinstance(exc, EndOfFile):
+        return "the file ends in the middle of a record"
+    return f"{type(exc).__name__}: {exc}"
+
+
 class McapLog(LogReader):
     """An MCAP file opened for streaming (see :func:`memlog.io.open_log`)."""
 
@@ -286,7 +294,7 @@ class McapLog(LogReader):
                 self.report.bytes_read = pos
                 self.warn(
                     f"{self.path}: log is truncated or damaged near byte {pos} of {self.size_bytes} "
-                    f"({type(exc).__name__}: {exc}); read everything before it"
+                    f"({_why(exc)}); read everything before it"
                 )
 
     # -- metadata / attachments ----------------------------------------------------

@@ -1,0 +1,225 @@
+"""Drop kept frames that repeat an earlier kept frame (loops, stops, revisits).
+
+Kept frames are visited in table (log-time) order; a frame is a near-duplicate when it
+matches ANY frame kept before it (not just the last one, so returning to a place is
+caught). Matching uses every active condition (a condition is active when its setting
+is not None):
+
+* descriptors: cosine distance ``1 - <d_i, d_j>`` < ``dup_distance``;
+* positions: Euclidean distance <= ``dup_radius_m``.
+
+With both active a duplicate must look alike AND be nearby (guards against perceptual
+aliasing). A frame whose descriptor/position is unknown never matches on that condition.
+A duplicate is attributed to the most similar matching kept frame (smallest descriptor
+distance, else smallest position distance; ties to the earliest). Duplicates are not
+added to the kept set. Cost is O(N*K*d) for K kept frames, computed as blocked matrix
+products against a growing matrix of kept descriptors.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from memlog.errors import ConfigError, EvaluationError
+from memlog.selection._checks import finite_number, positive_int, positive_number
+from memlog.selection.table import ScoreTable, Selection
+
+__all__ = ["RedundancyConfig", "Duplicates", "find_duplicates", "drop_duplicates"]
+
+
+@dataclass(frozen=True)
+class RedundancyConfig:
+    """Duplicate conditions (None = inactive; at least one active) and the work budget
+    (``block_elements``: max entries of one candidate-by-kept distance block)."""
+
+    dup_distance: float | None = 0.1
+    dup_radius_m: float | None = None
+    block_elements: int = 1 << 22
+
+    def __post_init__(self) -> None:
+        if self.dup_distance is None and self.dup_radius_m is None:
+            raise ConfigError("redundancy needs dup_distance or dup_radius_m (both are None)")
+        if self.dup_distance is not None:
+            v = finite_number("dup_distance", self.dup_distance)
+            if not 0.0 < v <= 2.0:
+                raise ConfigError(f"dup_distance must be in (0, 2], got {self.dup_distance!r}")
+        if self.dup_radius_m is not None:
+            positive_number("dup_radius_m", self.dup_radius_m)
+        positive_int("block_elements", self.block_elements)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Settings as a plain dict."""
+        return asdict(self)
+
+
+@dataclass(eq=False)
+class Duplicates:
+    """Result of :func:`find_duplicates`, per table row.
+
+    ``keep``: the filtered mask; ``duplicate_of``: row of the kept frame a dropped frame
+    repeats (-1 otherwise); ``distance``: its descriptor distance (or position distance
+    when descriptors are not used; NaN otherwise).
+    """
+
+    keep: NDArray[np.bool_]
+    duplicate_of: NDArray[np.int64]
+    distance: NDArray[np.float64]
+
+    @property
+    def dropped_rows(self) -> NDArray[np.int64]:
+        """Rows dropped as duplicates."""
+        return np.flatnonzero(self.duplicate_of >= 0).astype(np.int64)
+
+
+def _pos_dist(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Pairwise Euclidean distances [len(a), len(b)] (NaN rows give NaN)."""
+    sq = np.zeros((a.shape[0], b.shape[0]))
+    for k in range(a.shape[1]):
+        sq += (a[:, k, None] - b[None, :, k]) ** 2
+    return np.asarray(np.sqrt(sq), dtype=np.float64)
+
+
+def find_duplicates(
+    table: ScoreTable, keep: ArrayLike, config: RedundancyConfig | None = None
+) -> Duplicates:
+    """Filter ``keep`` (bool[N]) so no kept frame near-duplicates an earlier kept frame."""
+    cfg = config if config is not None else RedundancyConfig()
+    mask = np.asarray(keep)
+    n = table.n
+    if mask.dtype != bool or mask.shape != (n,):
+        raise EvaluationError(f"keep must be a bool mask of shape ({n},), got {mask.dtype} {mask.shape}")
+    use_d = cfg.dup_distance is not None
+    use_p = cfg.dup_radius_m is not None
+    if use_d and table.descriptors is None:
+        raise ConfigError("dup_distance needs descriptors, but the score table has none")
+    if use_p and table.positions is None:
+        raise ConfigError("dup_radius_m needs positions, but the score table has none")
+    dd = float(cfg.dup_distance) if cfg.dup_distance is not None else 0.0
+    rr = float(cfg.dup_radius_m) if cfg.dup_radius_m is not None else 0.0
+
+    cand = np.flatnonzero(mask)
+    m = cand.size
+    out_keep = mask.copy()
+    dup_of = np.full(n, -1, dtype=np.int64)
+    dist_out = np.full(n, np.nan)
+    if m == 0:
+        return Duplicates(out_keep, dup_of, dist_out)
+
+    if use_d:
+        assert table.descriptors is not None
+        dsc = table.descriptors[cand]
+        d_ok = np.all(np.isfinite(dsc), axis=1)
+        dsc = np.where(d_ok[:, None], dsc, 0.0).astype(np.float32)
+        kept_d = np.empty((m, dsc.shape[1]), dtype=np.float32)
+        kept_dok = np.zeros(m, dtype=bool)
+    if use_p:
+        assert table.positions is not None
+        pos = table.positions[cand]
+        p_ok = np.all(np.isfinite(pos), axis=1)
+        kept_p = np.empty((m, pos.shape[1]), dtype=np.float64)
+        kept_pok = np.zeros(m, dtype=bool)
+    kept_rows = np.empty(m, dtype=np.int64)  # table rows of kept frames
+    n_kept = 0
+
+    def match(rows: slice, ref: slice | NDArray[np.int64], kept: bool) -> tuple[
+        NDArray[np.bool_], NDArray[np.float64]
+    ]:
+        """Match matrix and ranking metric of candidates ``rows`` against reference frames
+        ``ref`` (positions in the kept arrays if ``kept``, else candidate positions)."""
+        cond: NDArray[np.bool_] | None = None
+        metric: NDArray[np.float64] | None = None
+        if use_d:
+            rd, rok = (kept_d[ref], kept_dok[ref]) if kept else (dsc[ref], d_ok[ref])
+            dist = 1.0 - (dsc[rows] @ rd.T).astype(np.float64)
+            c = (dist < dd) & d_ok[rows][:, None] & rok[None, :]
+            cond, metric = c, dist
+        if use_p:
+            rp, rok = (kept_p[ref], kept_pok[ref]) if kept else (pos[ref], p_ok[ref])
+            pd = _pos_dist(pos[rows], rp)
+            with np.errstate(invalid="ignore"):
+                c = (pd <= rr) & p_ok[rows][:, None] & rok[None, :]
+            cond = c if cond is None else cond & c
+            metric = pd if metric is None else metric
+        assert cond is not None and metric is not None
+        return cond, metric
+
+    start = 0
+    while start < m:
+        b = int(max(16, min(1024, cfg.block_elements // max(n_kept, 1))))
+        stop = min(m, start + b)
+        blk = slice(start, stop)
+        # against frames kept before this block
+        best_old = np.full(stop - start, -1, dtype=np.int64)
+        best_old_v = np.full(stop - start, np.inf)
+        if n_kept:
+            cond, metric = match(blk, slice(0, n_kept), True)
+            met = np.where(cond, metric, np.inf)
+            arg = np.argmin(met, axis=1)
+            val = met[np.arange(stop - start), arg]
+            hit = np.isfinite(val)
+            best_old[hit] = arg[hit]
+            best_old_v[hit] = val[hit]
+        # within the block, sequentially (later frames may duplicate earlier block frames)
+        cond_in, metric_in = match(blk, blk, False)
+        new_in_block: list[int] = []
+        for j in range(stop - start):
+            ci = int(cand[start + j])
+            bv, bref = best_old_v[j], (int(kept_rows[best_old[j]]) if best_old[j] >= 0 else -1)
+            if new_in_block:
+                prev = np.asarray(new_in_block)
+                c = cond_in[j, prev]
+                if np.any(c):
+                    v = np.where(c, metric_in[j, prev], np.inf)
+                    k = int(np.argmin(v))
+                    if v[k] < bv:
+                        bv, bref = float(v[k]), int(cand[start + prev[k]])
+            if bref >= 0:
+                out_keep[ci] = False
+                dup_of[ci] = bref
+                dist_out[ci] = bv
+            else:
+                new_in_block.append(j)
+        for j in new_in_block:
+            kept_rows[n_kept] = cand[start + j]
+            if use_d:
+                kept_d[n_kept] = dsc[start + j]
+                kept_dok[n_kept] = d_ok[start + j]
+            if use_p:
+                kept_p[n_kept] = pos[start + j]
+                kept_pok[n_kept] = p_ok[start + j]
+            n_kept += 1
+        start = stop
+    return Duplicates(out_keep, dup_of, dist_out)
+
+
+def drop_duplicates(
+    table: ScoreTable, selection: Selection, config: RedundancyConfig | None = None
+) -> Selection:
+    """A copy of ``selection`` with near-duplicate kept frames dropped (reason
+    "duplicate"; ``duplicates`` maps their frame index to the kept frame index)."""
+    cfg = config if config is not None else RedundancyConfig()
+    if selection.n_frames != table.n or not np.array_equal(selection.index, table.index):
+        raise EvaluationError("selection and score table cover different frames")
+    res = find_duplicates(table, selection.keep, cfg)
+    reasons = list(selection.reason)
+    duplicates = dict(selection.duplicates)
+    for r in res.dropped_rows.tolist():
+        reasons[r] = "duplicate"
+        duplicates[int(table.index[r])] = int(table.index[res.duplicate_of[r]])
+    info = dict(selection.info)
+    info["dedup"] = {**cfg.to_dict(), "n_dropped": int(res.dropped_rows.size)}
+    return Selection(
+        mode=selection.mode,
+        index=selection.index,
+        keep=res.keep,
+        reason=reasons,
+        thresholds=dict(selection.thresholds),
+        gaps=list(selection.gaps),
+        duplicates=duplicates,
+        info=info,
+        segment_id=selection.segment_id,
+    )

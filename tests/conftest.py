@@ -1,0 +1,80 @@
+"""Shared test fixtures: paths to the repo's fixtures and ../shared/data."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+FIXTURES = ROOT / "fixtures"
+SHARED = Path(os.environ.get("MEMLOG_SHARED_DATA", ROOT.parent / "shared" / "data"))
+
+SHARED_LOGS = [
+    "euroc_micro_ros2.mcap",
+    "euroc_micro_foxglove.mcap",
+    "euroc_micro_ros1.bag",
+    "euroc_micro_ros2_db3",
+    "nordland_dev_summer.mcap",
+    "nordland_dev_winter.mcap",
+]
+FIXTURE_LOGS = [
+    "demo.mcap",
+    "ros1.bag",
+    "ros2_sqlite",
+    "ros2_mcap",
+    "foxglove_json.mcap",
+    "foxglove_proto.mcap",
+    "ros2idl.mcap",
+    "ros1.mcap",
+    "encodings.mcap",
+]
+
+
+def shared(name: str) -> Path:
+    """Path of a shared log; the shared data is part of CI, so its absence is a failure, not a skip."""
+    path = SHARED / name
+    if not path.exists():
+        pytest.fail(f"{path} is missing: ../shared/data must sit beside the repo (or set MEMLOG_SHARED_DATA)")
+    return path
+
+
+def load_fixture_script() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("make_fixtures", FIXTURES / "make_fixtures.py")
+    assert spec and spec.loader
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="session")
+def fixture_script() -> ModuleType:
+    return load_fixture_script()
+
+
+@pytest.fixture(scope="session")
+def source_frames(fixture_script: ModuleType) -> list:
+    return fixture_script.source_frames()
+
+
+@pytest.fixture()
+def copy_of(tmp_path: Path):  # type: ignore[no-untyped-def]
+    """Copy a fixture (file or bag directory) into tmp_path, writable, for damaging."""
+
+    def _copy(name: str, base: Path = FIXTURES) -> Path:
+        src = base / name
+        dst = tmp_path / name
+        if src.is_dir():
+            shutil.copytree(src, dst)
+            for p in dst.rglob("*"):
+                p.chmod(0o644)
+        else:
+            shutil.copyfile(src, dst)
+            dst.chmod(0o644)
+        return dst
+
+    return _copy
