@@ -204,5 +204,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_ERROR
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # run the importable module, so subcommands register in one place
+    from memlog.cli import main as _main
+
+    sys.exit(_main())

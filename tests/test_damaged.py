@@ -20,7 +20,7 @@ def _sha(p: Path) -> str:
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "memlog.cli", *args], capture_output=True, text=True)
+    return subprocess.run([sys.executable, "-m", "memlog", *args], capture_output=True, text=True)
 
 
 def _frames_and_report(path: Path):  # type: ignore[no-untyped-def]

@@ -165,22 +165,21 @@ def find_duplicates(
             best_old_v[hit] = val[hit]
         # within the block, sequentially (later frames may duplicate earlier block frames)
         cond_in, metric_in = match(blk, blk, False)
+        met_in = np.where(cond_in, metric_in, np.inf)  # column j set to inf once j is a duplicate
         new_in_block: list[int] = []
         for j in range(stop - start):
             ci = int(cand[start + j])
-            bv, bref = best_old_v[j], (int(kept_rows[best_old[j]]) if best_old[j] >= 0 else -1)
-            if new_in_block:
-                prev = np.asarray(new_in_block)
-                c = cond_in[j, prev]
-                if np.any(c):
-                    v = np.where(c, metric_in[j, prev], np.inf)
-                    k = int(np.argmin(v))
-                    if v[k] < bv:
-                        bv, bref = float(v[k]), int(cand[start + prev[k]])
+            bv = float(best_old_v[j])
+            bref = int(kept_rows[best_old[j]]) if best_old[j] >= 0 else -1
+            if j:
+                k = int(np.argmin(met_in[j, :j]))
+                if met_in[j, k] < bv:  # strict: ties go to the earlier (older) kept frame
+                    bv, bref = float(met_in[j, k]), int(cand[start + k])
             if bref >= 0:
                 out_keep[ci] = False
                 dup_of[ci] = bref
                 dist_out[ci] = bv
+                met_in[j + 1 :, j] = np.inf
             else:
                 new_in_block.append(j)
         for j in new_in_block:

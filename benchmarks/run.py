@@ -1,0 +1,169 @@
+#!/usr/bin/env python3
+"""memlog benchmarks: print tables of throughput and peak memory on the shared logs.
+
+    python benchmarks/run.py                 # every table
+    python benchmarks/run.py io              # reading + decoding, convert
+    python benchmarks/run.py score           # scorer: ms per stage, paper-literal vs exact vs fast
+    python benchmarks/run.py descriptors     # descriptor extraction and matching
+
+Each case runs in a fresh subprocess so its peak RSS (ru_maxrss) is its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = Path(os.environ.get("MEMLOG_SHARED_DATA", ROOT.parent / "shared" / "data"))
+LOGS = ["euroc_micro_ros2.mcap", "euroc_micro_foxglove.mcap", "euroc_micro_ros1.bag", "euroc_micro_ros2_db3",
+        "nordland_dev_summer.mcap"]
+
+
+def _case(kind: str, *args: str) -> dict[str, Any]:
+    out = subprocess.run([sys.executable, __file__, "--case", kind, *args], capture_output=True, text=True)
+    if out.returncode != 0:
+        raise SystemExit(f"benchmark case {kind} {args} failed:\n{out.stderr}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _size(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) if path.is_dir() else path.stat().st_size
+
+
+# -- cases (run in the subprocess) -------------------------------------------------------
+def case_read(log: str) -> dict[str, Any]:
+    from memlog.io import open_log
+
+    base = _peak_mb()
+    t0 = time.perf_counter()
+    n = nbytes = 0
+    with open_log(SHARED / log) as r:
+        for f in r.frames():
+            f.decode_bgr()
+            n += 1
+            nbytes += len(f.payload.data)
+    dt = time.perf_counter() - t0
+    return {"frames": n, "seconds": dt, "mb": _size(SHARED / log) / 1e6, "peak_mb": _peak_mb(), "base_mb": base}
+
+
+def case_convert(log: str) -> dict[str, Any]:
+    from memlog.convert import convert
+
+    base = _peak_mb()
+    with tempfile.TemporaryDirectory() as d:
+        t0 = time.perf_counter()
+        res = convert(SHARED / log, Path(d) / "out.mcap")
+        dt = time.perf_counter() - t0
+    return {"messages": res.messages, "seconds": dt, "mb": res.bytes_in / 1e6, "peak_mb": _peak_mb(), "base_mb": base}
+
+
+def case_score(log: str, mode: str, limit: str) -> dict[str, Any]:
+    from memlog.config import ScoreConfig
+    from memlog.io import open_log
+    from memlog.scoring.scorer import Scorer
+
+    cfg = ScoreConfig(mode=mode if mode != "all-scores" else "exact", all_scores=mode == "all-scores")
+    scorer = Scorer(cfg).load()
+    n_max = int(limit)
+    decisions = []
+    stages: dict[str, float] = {}
+    crops = 0
+    base = _peak_mb()
+    t0 = time.perf_counter()
+    with open_log(SHARED / log) as r:
+        topic = r.camera_topics()[0]
+        frames = (f for i, f in zip(range(n_max), r.frames([topic])))
+        for _, s in scorer.score_stream(frames, lambda fr: fr.decode_bgr()):
+            assert not isinstance(s, Exception), s
+            decisions.append([s.selected, s.rejected_by])
+            crops += s.crops_scored
+            for k, v in s.timing_ms.items():
+                stages[k] = stages.get(k, 0.0) + v
+    dt = time.perf_counter() - t0
+    n = len(decisions)
+    return {"frames": n, "seconds": dt, "fps": n / dt, "stage_ms": {k: v / n for k, v in stages.items()},
+            "crops_per_frame": crops / n, "decisions": decisions, "peak_mb": _peak_mb(), "base_mb": base}
+
+
+# -- tables ------------------------------------------------------------------------------
+def table(rows: list[list[Any]], header: list[str]) -> str:
+    cells = [[str(c) for c in r] for r in [header, *rows]]
+    w = [max(len(r[i]) for r in cells) for i in range(len(header))]
+    line = lambda r: "| " + " | ".join(c.ljust(x) for c, x in zip(r, w)) + " |"  # noqa: E731
+    return "\n".join([line(cells[0]), "|" + "|".join("-" * (x + 2) for x in w) + "|", *(line(r) for r in cells[1:])])
+
+
+def bench_io() -> None:
+    rows = []
+    for log in LOGS:
+        r = _case("read", log)
+        c = _case("convert", log)
+        rows.append([log, r["frames"], f"{r['mb']:.1f}", f"{r['frames'] / r['seconds']:.0f}",
+                     f"{r['mb'] / r['seconds']:.0f}", f"{r['peak_mb']:.0f}",
+                     f"{c['mb'] / c['seconds']:.0f}", f"{c['messages'] / c['seconds']:.0f}", f"{c['peak_mb']:.0f}"])
+    print("\n### Log I/O (read + decode every camera frame; convert = copy every record to indexed MCAP)\n")
+    print(table(rows, ["log", "frames", "MB", "read+decode frames/s", "read+decode MB/s", "peak RSS MB",
+                       "convert MB/s", "convert msgs/s", "convert peak RSS MB"]))
+
+
+def bench_score(n: int) -> None:
+    rows = []
+    agree_rows = []
+    for log in ["euroc_micro_ros2_db3", "nordland_dev_summer.mcap"]:
+        res = {m: _case("score", log, m, str(n)) for m in ("paper", "exact", "fast", "all-scores")}
+        p = res["paper"]
+        for m, r in res.items():
+            st = r["stage_ms"]
+            rows.append([log, m, r["frames"], *(f"{st.get(k, 0):.1f}" for k in ("decode", "resize", "staticity", "entropy", "memorability")),
+                         f"{r['crops_per_frame']:.1f}", f"{r['fps']:.3f}", f"{r['fps'] / p['fps']:.1f}x", f"{r['peak_mb']:.0f}"])
+        for m in ("exact", "fast"):
+            same = sum(a[0] == b[0] for a, b in zip(p["decisions"], res[m]["decisions"]))
+            agree_rows.append([log, m, f"{same}/{len(p['decisions'])}", f"{100.0 * same / len(p['decisions']):.1f} %",
+                               sum(a[0] for a in res[m]["decisions"]), sum(a[0] for a in p["decisions"])])
+    print(f"\n### Scorer ({n} frames per log, measured in one run; ms per frame per stage)\n")
+    print(table(rows, ["log", "mode", "frames", "decode", "resize", "staticity", "entropy", "memorability",
+                       "crops/frame", "frames/s", "vs paper-literal", "peak RSS MB"]))
+    print("\nDecision agreement with the paper-literal pipeline (selected yes/no, paper thresholds):\n")
+    print(table(agree_rows, ["log", "mode", "same decisions", "agreement", "selected", "selected (paper)"]))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", nargs="*", default=["io", "score", "descriptors"])
+    ap.add_argument("--frames", type=int, default=12, help="frames per log for the scorer table")
+    ap.add_argument("--case", nargs="+", help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.case:
+        kind, *rest = a.case
+        print(json.dumps(globals()[f"case_{kind}"](*rest)))
+        return 0
+    if "io" in a.what:
+        bench_io()
+    if "score" in a.what:
+        bench_score(a.frames)
+    if "descriptors" in a.what:
+        bench_descriptors()
+    return 0
+
+
+def bench_descriptors() -> None:
+    script = Path(__file__).with_name("descriptor_recall.py")
+    if script.exists():
+        subprocess.run([sys.executable, str(script)], check=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,7 @@
+"""``python -m memlog`` = the ``memlog`` command."""
+
+import sys
+
+from memlog.cli import main
+
+sys.exit(main())

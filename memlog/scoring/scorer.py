@@ -1,0 +1,256 @@
+"""The staged scorer: staticity -> entropy -> memorability, cheapest first, with early exit.
+
+:class:`Scorer` scores one decoded frame (``score``) or splits the work in two halves,
+``cheap`` (resize, detector, staticity map, entropy map: OpenCV/numpy, releases the GIL) and
+``finish`` (memorability CNN on onnxruntime), so a caller can run the cheap half of later
+frames on one core while the CNN runs on the other (:meth:`Scorer.score_stream`).
+
+Modes (``ScoreConfig.mode``):
+
+* ``exact``: the paper's selections, fast. Exact sliding-histogram entropy, the detector once
+  per frame, stages skipped once a frame fails, and the crop loop of the memorability stage
+  stops as soon as MS >= MT is decided (MS is then recorded as a bound, ``ms_exact=False``).
+* ``paper``: the literal pipeline (scikit-image entropy, every crop, every score) for reference.
+* ``fast``: ``exact`` with the int8 memorability model.
+
+``all_scores=True`` computes every score of every frame (for sweeps and reports).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from memlog.config import ScoreConfig
+from memlog.errors import ScoringError
+
+__all__ = ["Scorer", "FrameScore", "CheapStage", "resize_frame", "STAGES"]
+
+STAGES = ("staticity", "entropy", "memorability")
+T = TypeVar("T")
+
+
+def resize_frame(bgr: npt.NDArray[Any], size: int = 1135) -> npt.NDArray[np.uint8]:
+    """The spec's frame: BGR (grey replicated), ``cv2.resize`` to size x size, INTER_LINEAR."""
+    if bgr.ndim == 2:
+        bgr = cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR)
+    if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
+        raise ScoringError(f"expected an HxWx3 uint8 BGR frame, got shape {bgr.shape} dtype {bgr.dtype}")
+    return np.ascontiguousarray(cv2.resize(bgr, (size, size), interpolation=cv2.INTER_LINEAR))
+
+
+@dataclass
+class CheapStage:
+    """Result of the cheap half: staticity and entropy (maps kept only when asked)."""
+
+    frame1135: npt.NDArray[np.uint8]
+    height: int
+    width: int
+    static_map: npt.NDArray[Any]
+    ss: float
+    detections: list[Any]
+    es: float | None = None
+    entropy_map: npt.NDArray[Any] | None = None
+    rejected_by: str | None = None
+    timing_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class FrameScore:
+    """Scores of one frame (None where a stage was skipped)."""
+
+    ms: float | None
+    ss: float | None
+    es: float | None
+    selected: bool
+    rejected_by: str | None
+    memorability: npt.NDArray[np.float32] | None = None  # 5x5, NaN = not scored
+    ms_low: float | None = None
+    ms_high: float | None = None
+    ms_exact: bool = True
+    crops_scored: int = 0
+    detections: list[Any] = field(default_factory=list)
+    timing_ms: dict[str, float] = field(default_factory=dict)
+    width: int = 0
+    height: int = 0
+    maps: dict[str, npt.NDArray[Any]] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        m = None
+        if self.memorability is not None:
+            m = [[None if not np.isfinite(v) else round(float(v), 6) for v in row] for row in self.memorability]
+        r = lambda v: None if v is None else round(float(v), 6)  # noqa: E731
+        return {
+            "ms": r(self.ms), "ms_low": r(self.ms_low), "ms_high": r(self.ms_high), "ms_exact": self.ms_exact,
+            "ss": r(self.ss), "es": r(self.es), "memorability": m, "crops_scored": self.crops_scored,
+            "selected": self.selected, "rejected_by": self.rejected_by,
+            "detections": len(self.detections),
+            "timing_ms": {k: round(v, 3) for k, v in self.timing_ms.items()},
+        }
+
+
+class Scorer:
+    """Scores frames with the three criteria of the paper. Models load on first use."""
+
+    def __init__(
+        self,
+        config: ScoreConfig | None = None,
+        *,
+        memorability: Any = None,
+        staticity: Any = None,
+        memorability_path: Any = None,
+    ) -> None:
+        self.config = config or ScoreConfig()
+        self._mem = memorability
+        self._stat = staticity
+        self._mem_path = memorability_path
+
+    # -- models ---------------------------------------------------------------------
+    @property
+    def staticity(self) -> Any:
+        if self._stat is None:
+            from memlog.scoring.staticity import Staticity
+
+            c = self.config
+            self._stat = Staticity(conf=c.det_conf, min_area=c.det_min_area, dynamic=c.dynamic_classes, size=c.size)
+        return self._stat
+
+    @property
+    def memorability(self) -> Any:
+        if self._mem is None:
+            from memlog.scoring.memorability import Memorability
+
+            threads = self.config.threads or None
+            path = self._mem_path
+            if path is None and self.config.mode == "fast":
+                from memlog.models.registry import memorability_model_path
+
+                path = memorability_model_path("fast")
+            self._mem = Memorability(path, threads=threads, batch=self.config.crop_batch)
+        return self._mem
+
+    def load(self) -> "Scorer":
+        """Load every model now (to fail early with a clear message)."""
+        _ = self.staticity.net if hasattr(self.staticity, "net") else None
+        _ = self.memorability
+        return self
+
+    # -- stages ---------------------------------------------------------------------
+    def cheap(self, bgr: npt.NDArray[Any], keep_maps: bool | None = None) -> CheapStage:
+        """Resize, staticity (detector once), entropy: everything but the CNN."""
+        from memlog.scoring.entropy import entropy_map, entropy_score
+
+        c = self.config
+        keep = c.maps if keep_maps is None else keep_maps
+        timing: dict[str, float] = {}
+        t0 = time.perf_counter()
+        h, w = bgr.shape[:2]
+        f = resize_frame(bgr, c.size)
+        t1 = time.perf_counter()
+        timing["resize"] = (t1 - t0) * 1e3
+        s_map, ss, dets = self.staticity(f)
+        t2 = time.perf_counter()
+        timing["staticity"] = (t2 - t1) * 1e3
+        out = CheapStage(f, h, w, s_map, float(ss), list(dets), timing_ms=timing)
+        if ss < c.st:
+            out.rejected_by = "staticity"
+            if not c.all_scores and c.mode != "paper":
+                return out
+        gray = cv2.cvtColor(f, cv2.COLOR_BGR2GRAY)
+        if c.mode == "paper":
+            from skimage.filters.rank import entropy as sk_entropy
+            from skimage.morphology import disk
+
+            emap = sk_entropy(gray, disk(c.entropy_radius)).astype(np.float64)
+        else:
+            emap = entropy_map(gray, c.entropy_radius)
+        es = entropy_score(emap, s_map)
+        if c.normalize == "static":
+            es = es / ss if ss > 0 else 0.0
+        out.es = float(es)
+        timing["entropy"] = (time.perf_counter() - t2) * 1e3
+        if keep:
+            out.entropy_map = emap
+        if out.rejected_by is None and out.es < c.et:
+            out.rejected_by = "entropy"
+        return out
+
+    def finish(self, cheap: CheapStage) -> FrameScore:
+        """Memorability (when still needed) and the decision."""
+        c = self.config
+        timing = dict(cheap.timing_ms)
+        res = FrameScore(ms=None, ss=cheap.ss, es=cheap.es, selected=False, rejected_by=cheap.rejected_by,
+                         detections=cheap.detections, timing_ms=timing, width=cheap.width, height=cheap.height)
+        need_m = cheap.rejected_by is None or c.all_scores or c.mode == "paper"
+        if need_m:
+            t0 = time.perf_counter()
+            early = c.mode != "paper" and not c.all_scores
+            thr = c.mt
+            if c.normalize == "static":
+                thr = c.mt * cheap.ss  # MS_static = MS_all / SS
+            r = self.memorability(cheap.frame1135, cheap.static_map, threshold=thr if early else None)
+            timing["memorability"] = (time.perf_counter() - t0) * 1e3
+            scale = (1.0 / cheap.ss if cheap.ss > 0 else 0.0) if c.normalize == "static" else 1.0
+            res.memorability = r.m
+            res.crops_scored = r.n_scored
+            res.ms_exact = bool(r.exact)
+            res.ms_low, res.ms_high = r.ms_low * scale, r.ms_high * scale
+            res.ms = (r.ms * scale) if r.exact else (res.ms_low if r.passed else res.ms_high)
+            passed = r.passed if r.passed is not None else (res.ms >= c.mt)
+            if res.rejected_by is None and not passed:
+                res.rejected_by = "memorability"
+            if c.maps:
+                from memlog.scoring.memorability import memorability_map
+
+                res.maps["memorability"] = memorability_map(np.where(np.isnan(r.m), 0.0, r.m))
+        res.selected = res.rejected_by is None
+        if c.maps:
+            res.maps["staticity"] = cheap.static_map
+            if cheap.entropy_map is not None:
+                res.maps["entropy"] = cheap.entropy_map
+        return res
+
+    def score(self, bgr: npt.NDArray[Any]) -> FrameScore:
+        """Score one decoded frame (BGR or grey, any size)."""
+        return self.finish(self.cheap(bgr))
+
+    def score_stream(
+        self, items: Iterable[T], decode: Callable[[T], npt.NDArray[Any]], prefetch: int = 2
+    ) -> Iterator[tuple[T, FrameScore | Exception]]:
+        """Score a stream with the cheap half of later frames overlapping the CNN.
+
+        ``decode`` turns an item into pixels (runs in the worker thread). Yields the item with
+        its :class:`FrameScore`, or with the exception when decoding/scoring failed (the
+        stream goes on).
+        """
+        def cheap_of(item: T) -> CheapStage:
+            t0 = time.perf_counter()
+            img = decode(item)
+            dt = (time.perf_counter() - t0) * 1e3
+            out = self.cheap(img)
+            out.timing_ms = {"decode": dt, **out.timing_ms}
+            return out
+
+        pending: deque[tuple[T, Future[CheapStage]]] = deque()
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="memlog-cheap") as pool:
+            def drain_one() -> tuple[T, FrameScore | Exception]:
+                item, fut = pending.popleft()
+                try:
+                    return item, self.finish(fut.result())
+                except Exception as exc:  # one bad frame never stops the run
+                    return item, exc
+
+            for item in items:
+                pending.append((item, pool.submit(cheap_of, item)))
+                while len(pending) > prefetch:
+                    yield drain_one()
+            while pending:
+                yield drain_one()
