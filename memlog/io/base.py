@@ -198,13 +198,15 @@ class LogReader(ABC):
                 continue
             if idx % stride:
                 continue
-            frame = self._to_frame(m, idx, decoders, errors)
+            frame = self.to_frame(m, idx, decoders, errors)
             if frame is not None:
                 yield frame
 
-    def _to_frame(
+    def to_frame(
         self, m: RawMessage, idx: int, decoders: dict[int, Any], errors: list[FrameError] | None
     ) -> Frame | None:
+        """Deserialize camera message ``m`` (the ``idx``-th of its topic) into a Frame; None if it fails
+        (reported). ``decoders`` caches one deserializer per channel across calls."""
         ch = m.channel
         try:
             dec = decoders.get(ch.id)

@@ -17,7 +17,7 @@ import pickle
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -51,7 +51,7 @@ class _StorageType:
 class _Storages:
     """Reads raw storages from the archive on first use and keeps them for sharing."""
 
-    def __init__(self, zf: zipfile.ZipFile, prefix: str, byteorder: str) -> None:
+    def __init__(self, zf: zipfile.ZipFile, prefix: str, byteorder: Literal["<", ">"]) -> None:
         self._zf = zf
         self._prefix = prefix
         self._byteorder = byteorder
@@ -185,7 +185,7 @@ def load_state_dict(path: Path) -> dict[str, npt.NDArray[Any]]:
         raise ModelError(f"cannot open {path} as a torch zip state dict: {exc}") from None
     with zf:
         prefix = _archive_prefix(zf)
-        byteorder = "<"
+        byteorder: Literal["<", ">"] = "<"
         try:
             text = zf.read(f"{prefix}/byteorder").decode("ascii", "replace").strip()
             byteorder = ">" if text == "big" else "<"

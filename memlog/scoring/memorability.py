@@ -104,7 +104,7 @@ def _check_matrix(m: npt.NDArray[Any]) -> None:
 def _check_static(s: npt.NDArray[Any]) -> F64:
     if not isinstance(s, np.ndarray) or s.shape != (FRAME, FRAME):
         raise ScoringError(f"static map must be {FRAME}x{FRAME}, got {getattr(s, 'shape', None)}")
-    s64 = s.astype(np.float64)
+    s64 = np.asarray(s, dtype=np.float64)
     if not np.all((s64 >= 0) & (s64 <= 1)):
         raise ScoringError("static map values must lie in 0..1")
     return s64
@@ -129,8 +129,8 @@ def memorability_score(m: npt.NDArray[Any], s: npt.NDArray[Any] | None = None) -
 @lru_cache(maxsize=1)
 def _interp_matrix() -> F64:
     """A (1135 x 5) with cv2.resize(M) == A @ M @ A.T for INTER_LINEAR (read off cv2 itself)."""
-    a = cv2.resize(np.eye(GRID, dtype=np.float64), (GRID, FRAME), interpolation=cv2.INTER_LINEAR)
-    a = np.asarray(a, dtype=np.float64)
+    up = cv2.resize(np.eye(GRID, dtype=np.float64), (GRID, FRAME), interpolation=cv2.INTER_LINEAR)
+    a: F64 = np.asarray(up, dtype=np.float64)
     a.setflags(write=False)
     return a
 
@@ -197,6 +197,8 @@ class Memorability:
         bs = self.batch if batch is None else batch
         if bs < 1:
             raise ScoringError(f"batch must be >= 1, got {bs}")
+        if threshold is not None and not np.isfinite(threshold):
+            raise ScoringError(f"threshold must be finite, got {threshold}")
         crops = crops_from_frame(bgr1135)
         w = crop_weights(static_map).reshape(-1)
         order = [int(k) for k in np.argsort(-w, kind="stable") if w[k] > 0]

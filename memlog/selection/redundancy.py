@@ -12,12 +12,15 @@ With both active a duplicate must look alike AND be nearby (guards against perce
 aliasing). A frame whose descriptor/position is unknown never matches on that condition.
 A duplicate is attributed to the most similar matching kept frame (smallest descriptor
 distance, else smallest position distance; ties to the earliest). Duplicates are not
-added to the kept set. Cost is O(N*K*d) for K kept frames, computed as blocked matrix
-products against a growing matrix of kept descriptors.
+added to the kept set. Cost is O(N*K*d) for K kept frames: candidates go in blocks of
+up to 256 rows, matched by float32 matrix products against a growing matrix of kept
+descriptors (in column chunks so one block has at most ``block_elements`` entries), then
+resolved in order within the block.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -75,12 +78,12 @@ class Duplicates:
         return np.flatnonzero(self.duplicate_of >= 0).astype(np.int64)
 
 
-def _pos_dist(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Pairwise Euclidean distances [len(a), len(b)] (NaN rows give NaN)."""
+def _pos_sqdist(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Pairwise squared Euclidean distances [len(a), len(b)] (NaN rows give NaN)."""
     sq = np.zeros((a.shape[0], b.shape[0]))
     for k in range(a.shape[1]):
         sq += (a[:, k, None] - b[None, :, k]) ** 2
-    return np.asarray(np.sqrt(sq), dtype=np.float64)
+    return sq
 
 
 def find_duplicates(
@@ -125,73 +128,79 @@ def find_duplicates(
     kept_rows = np.empty(m, dtype=np.int64)  # table rows of kept frames
     n_kept = 0
 
-    def match(rows: slice, ref: slice | NDArray[np.int64], kept: bool) -> tuple[
-        NDArray[np.bool_], NDArray[np.float64]
-    ]:
-        """Match matrix and ranking metric of candidates ``rows`` against reference frames
-        ``ref`` (positions in the kept arrays if ``kept``, else candidate positions)."""
-        cond: NDArray[np.bool_] | None = None
-        metric: NDArray[np.float64] | None = None
+    def cost(rows: slice, ref: slice, kept: bool) -> NDArray[np.float32]:
+        """Ranking cost of candidates ``rows`` against reference frames ``ref`` (rows of the
+        kept arrays if ``kept``, else candidate rows): descriptor distance, else position
+        distance (squared); +inf where a pair does not match every active condition."""
+        out: NDArray[np.float32] | None = None
         if use_d:
             rd, rok = (kept_d[ref], kept_dok[ref]) if kept else (dsc[ref], d_ok[ref])
-            dist = 1.0 - (dsc[rows] @ rd.T).astype(np.float64)
-            c = (dist < dd) & d_ok[rows][:, None] & rok[None, :]
-            cond, metric = c, dist
+            dist = np.float32(1.0) - dsc[rows] @ rd.T
+            bad = ~((dist < dd) & d_ok[rows][:, None] & rok[None, :])
+            dist[bad] = np.inf
+            out = dist
         if use_p:
             rp, rok = (kept_p[ref], kept_pok[ref]) if kept else (pos[ref], p_ok[ref])
-            pd = _pos_dist(pos[rows], rp)
+            pd = _pos_sqdist(pos[rows], rp)
             with np.errstate(invalid="ignore"):
-                c = (pd <= rr) & p_ok[rows][:, None] & rok[None, :]
-            cond = c if cond is None else cond & c
-            metric = pd if metric is None else metric
-        assert cond is not None and metric is not None
-        return cond, metric
+                bad = ~((pd <= rr * rr) & p_ok[rows][:, None] & rok[None, :])
+            if out is None:
+                pd[bad] = np.inf
+                out = pd.astype(np.float32)
+            else:
+                out[bad] = np.inf
+        assert out is not None
+        return out
 
+    b = int(min(256, max(16, math.isqrt(cfg.block_elements))))  # candidates per block
+    chunk = max(1, cfg.block_elements // b)  # kept frames per distance block
     start = 0
     while start < m:
-        b = int(max(16, min(1024, cfg.block_elements // max(n_kept, 1))))
         stop = min(m, start + b)
         blk = slice(start, stop)
-        # against frames kept before this block
+        rows_b = np.arange(stop - start)
+        # best match among the frames kept before this block, chunk by chunk
         best_old = np.full(stop - start, -1, dtype=np.int64)
-        best_old_v = np.full(stop - start, np.inf)
-        if n_kept:
-            cond, metric = match(blk, slice(0, n_kept), True)
-            met = np.where(cond, metric, np.inf)
-            arg = np.argmin(met, axis=1)
-            val = met[np.arange(stop - start), arg]
-            hit = np.isfinite(val)
-            best_old[hit] = arg[hit]
-            best_old_v[hit] = val[hit]
+        best_old_v = np.full(stop - start, np.inf, dtype=np.float32)
+        for k0 in range(0, n_kept, chunk):
+            k1 = min(n_kept, k0 + chunk)
+            c = cost(blk, slice(k0, k1), True)
+            arg = np.argmin(c, axis=1)
+            val = c[rows_b, arg]
+            better = val < best_old_v  # strict: ties stay with the earlier kept frame
+            best_old[better] = arg[better] + k0
+            best_old_v[better] = val[better]
         # within the block, sequentially (later frames may duplicate earlier block frames)
-        cond_in, metric_in = match(blk, blk, False)
-        met_in = np.where(cond_in, metric_in, np.inf)  # column j set to inf once j is a duplicate
+        c_in = cost(blk, blk, False)  # column j set to inf once frame j is a duplicate
         new_in_block: list[int] = []
         for j in range(stop - start):
             ci = int(cand[start + j])
             bv = float(best_old_v[j])
             bref = int(kept_rows[best_old[j]]) if best_old[j] >= 0 else -1
             if j:
-                k = int(np.argmin(met_in[j, :j]))
-                if met_in[j, k] < bv:  # strict: ties go to the earlier (older) kept frame
-                    bv, bref = float(met_in[j, k]), int(cand[start + k])
+                k = int(c_in[j, :j].argmin())
+                if c_in[j, k] < bv:
+                    bv, bref = float(c_in[j, k]), int(cand[start + k])
             if bref >= 0:
                 out_keep[ci] = False
                 dup_of[ci] = bref
                 dist_out[ci] = bv
-                met_in[j + 1 :, j] = np.inf
+                c_in[j + 1 :, j] = np.inf
             else:
                 new_in_block.append(j)
-        for j in new_in_block:
-            kept_rows[n_kept] = cand[start + j]
-            if use_d:
-                kept_d[n_kept] = dsc[start + j]
-                kept_dok[n_kept] = d_ok[start + j]
-            if use_p:
-                kept_p[n_kept] = pos[start + j]
-                kept_pok[n_kept] = p_ok[start + j]
-            n_kept += 1
+        new = np.asarray(new_in_block, dtype=np.int64) + start
+        k_new = n_kept + new.size
+        kept_rows[n_kept:k_new] = cand[new]
+        if use_d:
+            kept_d[n_kept:k_new] = dsc[new]
+            kept_dok[n_kept:k_new] = d_ok[new]
+        if use_p:
+            kept_p[n_kept:k_new] = pos[new]
+            kept_pok[n_kept:k_new] = p_ok[new]
+        n_kept = k_new
         start = stop
+    if not use_d:
+        dist_out = np.sqrt(dist_out)
     return Duplicates(out_keep, dup_of, dist_out)
 
 

@@ -143,15 +143,16 @@ def combined_score(
     """Per-frame combined score of (MS, SS, ES) with weights (ms, ss, es); NaN if any used
     score is NaN. See the module docstring for the choice."""
     w = np.asarray(weights, dtype=np.float64)
-    cols = (table.ms, table.ss, table.es)
     used = [i for i in range(3) if w[i] > 0]
+    wu = w[used][:, None] / w[used].sum()
+    cols = np.stack([(table.ms, table.ss, table.es)[i] for i in used])
     if combine == "rank":
-        ranks = [percentile_ranks(cols[i]) for i in used]
-        return np.asarray(sum(w[i] * r for i, r in zip(used, ranks)) / w[used].sum(), dtype=np.float64)
+        ranks = np.stack([percentile_ranks(c) for c in cols])
+        return np.asarray((wu * ranks).sum(axis=0), dtype=np.float64)
     if combine == "geometric":
         with np.errstate(divide="ignore", invalid="ignore"):
-            logs = [w[i] * np.log(np.clip(cols[i], 0.0, None)) for i in used]
-            return np.asarray(np.exp(sum(logs) / w[used].sum()), dtype=np.float64)
+            logs = np.log(np.clip(cols, 0.0, None))
+            return np.asarray(np.exp((wu * logs).sum(axis=0)), dtype=np.float64)
     raise ConfigError(f"combine must be one of {_COMBINE}, got {combine!r}")
 
 
@@ -225,7 +226,6 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
     if n == 0:
         return np.zeros(0, dtype=np.int64), {"by": config.by, "n_segments": 0}
     by = config.by
-    has_pos = table.positions is not None and int(np.count_nonzero(table.known_positions())) >= 2
     if by == "auto":
         if config.spacing_m is not None:
             by = "distance"
@@ -234,7 +234,7 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
         elif config.spacing_frames is not None:
             by = "count"
         else:
-            moved = has_pos and float(_path_length(table)[-1]) > 0.0
+            moved = table.positions is not None and float(_path_length(table)[-1]) > 0.0
             by = "distance" if moved else ("time" if table.t_ns[-1] > table.t_ns[0] else "count")
     if by == "distance" and table.positions is None:
         raise ConfigError("segment by='distance' needs positions, but the score table has none")
