@@ -59,6 +59,67 @@ def case_read(log: str) -> dict[str, Any]:
     return {"frames": n, "seconds": dt, "mb": _size(SHARED / log) / 1e6, "peak_mb": _peak_mb(), "base_mb": base}
 
 
+def make_big_log(path: Path, mb: int) -> int:
+    """A large MCAP: the EuRoC raw frames repeated (new log times) until ``mb`` megabytes."""
+    from memlog.io import McapLogWriter, open_log
+
+    with open_log(SHARED / "euroc_micro_ros2.mcap") as log:
+        msgs = list(log.messages(["/cam0/image_raw"]))
+    n = 0
+    span = msgs[-1].log_time - msgs[0].log_time + 50_000_000
+    with McapLogWriter(path, profile="ros2", compression="none") as w:
+        while n * len(msgs[0].data) < mb * 1e6:
+            rep, m = divmod(n, len(msgs))
+            src = msgs[m]
+            t = src.log_time + rep * span
+            w.write(w.channel_for(src.channel), t, src.data, t, n)
+            n += 1
+    return n
+
+
+def case_big_read(path: str) -> dict[str, Any]:
+    from memlog.io import open_log
+
+    base = _peak_mb()
+    t0 = time.perf_counter()
+    n = 0
+    with open_log(path) as r:
+        for f in r.frames():
+            f.decode_gray()
+            n += 1
+    dt = time.perf_counter() - t0
+    return {"frames": n, "seconds": dt, "mb": Path(path).stat().st_size / 1e6, "peak_mb": _peak_mb(), "base_mb": base}
+
+
+def case_big_convert(path: str) -> dict[str, Any]:
+    from memlog.convert import convert
+
+    base = _peak_mb()
+    out = Path(path).with_suffix(".converted.mcap")
+    t0 = time.perf_counter()
+    res = convert(path, out)
+    dt = time.perf_counter() - t0
+    out.unlink()
+    return {"messages": res.messages, "seconds": dt, "mb": res.bytes_in / 1e6, "peak_mb": _peak_mb(), "base_mb": base}
+
+
+def bench_big(mb: int) -> None:
+    rows = []
+    with tempfile.TemporaryDirectory() as d:
+        small = Path(d) / "small.mcap"
+        big = Path(d) / "big.mcap"
+        make_big_log(small, max(1, mb // 20))
+        make_big_log(big, mb)
+        for p in (small, big):
+            r = _case("big_read", str(p))
+            c = _case("big_convert", str(p))
+            rows.append([f"{r['mb']:.0f} MB", r["frames"], f"{r['frames'] / r['seconds']:.0f}", f"{r['mb'] / r['seconds']:.0f}",
+                         f"{r['peak_mb']:.0f}", f"{c['mb'] / c['seconds']:.0f}", f"{c['peak_mb']:.0f}"])
+    print("\n### Memory stays flat with log size (EuRoC raw frames repeated; read+decode and convert)\n")
+    print(table(rows, ["log size", "frames", "read+decode frames/s", "read MB/s", "read peak RSS MB",
+                       "convert MB/s", "convert peak RSS MB"]))
+
+
 def case_convert(log: str) -> dict[str, Any]:
     from memlog.convert import convert
 
@@ -144,6 +205,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", nargs="*", default=["io", "score", "descriptors"])
     ap.add_argument("--frames", type=int, default=12, help="frames per log for the scorer table")
+    ap.add_argument("--big-mb", type=int, default=1000, help="size of the synthetic large log for the memory table")
     ap.add_argument("--case", nargs="+", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.case:
@@ -152,6 +214,7 @@ def main() -> int:
         return 0
     if "io" in a.what:
         bench_io()
+        bench_big(a.big_mb)
     if "score" in a.what:
         bench_score(a.frames)
     if "descriptors" in a.what:

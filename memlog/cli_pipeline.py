@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from memlog.cli import EXIT_ERROR, EXIT_OK, _report_damage, _table, register
+from memlog.cli import EXIT_ERROR, EXIT_OK, _fmt_size, _report_damage, _table, register
 from memlog.progress import info
 
 
@@ -163,3 +163,77 @@ def _add_score(sub: Any) -> None:
     p.set_defaults(func=cmd_score)
 
 
+
+
+# -- map ----------------------------------------------------------------------------------
+def cmd_map(args: argparse.Namespace) -> int:
+    from memlog.mapping import make_map
+
+    config = config_from_args(args)
+    seg: dict[str, Any] = {}
+    if args.spacing_m is not None:
+        seg["spacing_m"] = args.spacing_m
+    if args.spacing_s is not None:
+        seg["spacing_s"] = args.spacing_s
+    if args.segment_by:
+        seg["by"] = args.segment_by
+    if seg and args.select != "segment":
+        print("memlog: error: --spacing-m/--spacing-s/--segment-by need --select segment", file=sys.stderr)
+        return 2
+    if args.select == "segment" and args.keep_fraction is None and not seg:
+        print("memlog: error: --select segment needs --keep-fraction or a spacing (--spacing-m / --spacing-s)",
+              file=sys.stderr)
+        return 2
+    res = make_map(
+        args.log, args.output, config, scores=args.scores, topics=args.topics, mode=args.select,
+        keep_fraction=args.keep_fraction, dedup_distance=args.dedup, keep_topics=args.keep_topic or [],
+        position_topic=args.position_topic, image_format=args.image_format, jpeg_quality=args.jpeg_quality,
+        descriptor=None if args.descriptor == "none" else args.descriptor, descriptors_path=args.descriptors,
+        segment=seg or None,
+    )
+    d = res.to_dict()
+    info(f"memlog: kept {res.frames_kept} of {res.frames_in} frames ({100 * d['frame_fraction']:.1f} %); "
+         f"{_fmt_size(res.bytes_in)} of camera data -> map log {_fmt_size(res.bytes_out)} "
+         f"({100 * d['byte_fraction']:.1f} %)")
+    if res.thresholds:
+        info("memlog: thresholds " + ", ".join(f"{k.upper()} {v:.4f}" for k, v in res.thresholds.items()))
+    for t, s in res.selections.items():
+        gaps = len(s.gaps)
+        info(f"memlog: {t}: {s.n_kept}/{s.n_frames} kept; dropped: "
+             + ", ".join(f"{k} {v}" for k, v in s.reason_counts().items()) + (f"; {gaps} gap(s)" if gaps else ""))
+    info(f"memlog: wrote {res.output}" + (f" and {res.descriptors}" if res.descriptors else ""))
+    if args.json:
+        print(json.dumps(d, indent=2))
+    return EXIT_OK
+
+
+@register
+def _add_map(sub: Any) -> None:
+    p = sub.add_parser("map", help="write the memorable-map log (kept frames) and its reference descriptors",
+                       description="Score LOG (or reuse --scores from `memlog score`), select frames and write "
+                                   "MAP.mcap with only the kept frames (compressed frames byte for byte, raw frames "
+                                   "encoded to JPEG/PNG), their scores, the run config and any topics named with "
+                                   "--keep-topic; plus reference descriptors (MAP.parquet).")
+    p.add_argument("log", help="MCAP file, ROS 1 .bag or ROS 2 bag directory")
+    p.add_argument("-o", "--output", required=True, help="map .mcap")
+    p.add_argument("--scores", help="annotated MCAP from `memlog score` to reuse instead of scoring again")
+    p.add_argument("--select", choices=["paper", "segment"], default="paper",
+                   help="paper: keep frames passing MT/ST/ET; segment: best frame per place segment")
+    p.add_argument("--keep-fraction", type=float,
+                   help="pick thresholds (paper) or segment size (segment) so about this fraction is kept")
+    p.add_argument("--spacing-m", type=float, help="segment: one frame per this many metres travelled")
+    p.add_argument("--spacing-s", type=float, help="segment: one frame per this many seconds")
+    p.add_argument("--segment-by", choices=["auto", "distance", "time", "count", "view"], help="segment boundaries")
+    p.add_argument("--dedup", type=float, metavar="DIST",
+                   help="drop kept frames within this cosine distance of an already kept one (loops, stops)")
+    p.add_argument("--keep-topic", action="append", metavar="TOPIC", help="copy this topic whole (GPS, odometry...)")
+    p.add_argument("--position-topic", help="NavSatFix/pose/odometry topic for positions (default: first found)")
+    p.add_argument("--image-format", choices=["jpeg", "png"], default="jpeg", help="encoding of raw frames")
+    p.add_argument("--jpeg-quality", type=int, default=90)
+    p.add_argument("--descriptor", default="thumbnail", help="reference descriptor kind (thumbnail, dinov2-cls, "
+                   "dinov2-gem, or none)")
+    p.add_argument("--descriptors", help="descriptor Parquet path (default: MAP.parquet)")
+    p.add_argument("--json", action="store_true", help="print the map summary as JSON")
+    p.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC", help="camera topic(s) to map")
+    _add_config_flags(p)
+    p.set_defaults(func=cmd_map)

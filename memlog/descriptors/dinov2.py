@@ -52,6 +52,7 @@ __all__ = [
     "dinov2_model_path",
     "source_model_path",
     "preprocess",
+    "pool_tokens",
     "SOURCE_SHA256",
     "TOKENS_OUTPUT",
 ]
@@ -338,12 +339,26 @@ class DinoV2Describer(Describer):
         out = np.zeros((len(imgs), WIDTH), dtype=np.float32)
         for start in range(0, len(imgs), self.batch_size):
             x, mask = preprocess(imgs[start : start + self.batch_size], self.resize)
-            tok = self._run(x)
-            if self.pooling == "cls":
-                out[start : start + len(x)] = tok[:, 0, :]
-            else:
-                patches = np.maximum(tok[:, 1:, :], 1e-6).astype(np.float64) ** self.gem_p
-                w = mask[:, :, None].astype(np.float64)
-                mean = (patches * w).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)
-                out[start : start + len(x)] = (mean ** (1.0 / self.gem_p)).astype(np.float32)
-        return l2_normalize(out)
+            out[start : start + len(x)] = pool_tokens(self._run(x), self.pooling, self.gem_p, mask)
+        return out
+
+
+def pool_tokens(
+    tokens: npt.NDArray[Any], pooling: str = "cls", gem_p: float = 3.0, mask: npt.NDArray[np.bool_] | None = None
+) -> F32:
+    """Global descriptors ``[B, 384]`` (L2-normalised) from backbone tokens ``[B, 257, 384]``.
+
+    ``"cls"``: the CLS token. ``"gem"``: ``(mean_j max(t_j, 1e-6)^p)^(1/p)`` over the patch
+    tokens ``j`` (those with ``mask`` True when given).
+    """
+    t = np.asarray(tokens, dtype=np.float32)
+    if t.ndim != 3 or t.shape[1] < 2:
+        raise DescriptorError(f"tokens must be [B, 1 + patches, dim], got shape {t.shape}")
+    if pooling == "cls":
+        return l2_normalize(t[:, 0, :])
+    if pooling != "gem":
+        raise DescriptorError(f"pooling must be 'cls' or 'gem', not {pooling!r}")
+    patches = np.maximum(t[:, 1:, :], 1e-6).astype(np.float64) ** gem_p
+    w = np.ones(patches.shape[:2]) if mask is None else np.asarray(mask, dtype=np.float64)
+    mean = (patches * w[:, :, None]).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)[:, None]
+    return l2_normalize(mean ** (1.0 / gem_p))

@@ -6,7 +6,7 @@ values under a disk footprint, counting only the neighbours inside the image (th
 of an edge pixel has fewer than ``disk(radius).sum()`` entries).
 
 scikit-image evaluates all 256 bins at every pixel. Here the histograms slide along the
-columns, vectorised over all rows and over a few column strips at once, with numpy only:
+columns, vectorised over all rows and a few column strips at once, with numpy only:
 
 * each histogram has one extra bin for "outside the image", so borders need no special case
   while sliding; its count ``c_out`` is taken out at the end;
@@ -18,8 +18,9 @@ columns, vectorised over all rows and over a few column strips at once, with num
   of in-image neighbours.
 
 The histograms are exact integers, so the map equals scikit-image's up to float rounding
-(the tests require <= 1e-9). The cost is set by numpy's fancy indexing, ~3-4 ns per bin
-change: 22 changes x 1.29 M pixels at 1135 x 1135 (scikit-image: 256 bins x 1.29 M).
+(the tests require <= 1e-9). The cost is set by numpy's fancy indexing, ~3 ns per bin
+change: 22 changes x 1.29 M pixels at 1135 x 1135, about 0.14 s on one core against
+0.6-0.9 s for scikit-image (which evaluates 256 bins x 1.29 M pixels).
 """
 
 from __future__ import annotations
@@ -102,27 +103,35 @@ def _band_sums(
     nfp = sum(2 * w + 1 for w in hw)
     cdt = np.uint8 if nfp < 255 else np.uint16
 
-    # Index table: q[c - cmin, s*hp + p] = (s*hp + p) * NB + value of padded row p at column
-    # s*wk + c. Lane l (strip l // hp, row l % hp) reads footprint row d at q[., l + d], whose
-    # lane part is (l + d) * NB: the histogram view shifted by -d * NB undoes that, so every
-    # bin change is one take and one assignment on slices of q, no index arithmetic.
+    # Histograms are bin-major, ``hist[v * lanes + l]``: rows next to each other mostly see
+    # close grey values, so their bin changes land on nearby bytes (~20 % faster on frames).
+    # Index table: q[c - cmin, s*hp + p] = value * lanes + s*hp + p for padded row p of strip
+    # s at column s*wk + c. Lane l (strip l // hp, row l % hp) reads footprint row d at
+    # q[., l + d]; the histogram view shifted by -d undoes the +d, so every bin change is one
+    # take and one assignment on a slice of q, with no index arithmetic in the loop.
     cmin = -r  # leftmost column offset read: the first disks and the first removals
     ncols = wk + r - cmin
+    lanes = k * hp
     rs, cs = pt.strides
     pix = as_strided(pt[lpad + cmin :, i0:], shape=(ncols, k, hp), strides=(rs, wk * rs, cs))
-    base = (np.arange(k * hp, dtype=np.intp) * _NB).reshape(k, hp)
-    q = np.add(base, pix).reshape(ncols, k * hp)
+    q = np.multiply(pix, lanes, dtype=np.intp)
+    q += np.arange(lanes, dtype=np.intp).reshape(k, hp)
+    q = q.reshape(ncols, lanes)
 
     # Histograms of the disks centred at column 0 of every strip, in one bincount.
-    first = [q[dx - cmin, d : d + nl] + (2 * r - d) * _NB for d, w in enumerate(hw) for dx in range(-w, w + 1)]
-    hist = np.bincount(np.concatenate(first), minlength=(2 * r + nl) * _NB).astype(cdt)
+    first = [q[dx - cmin, d : d + nl] + (2 * r - d) for d, w in enumerate(hw) for dx in range(-w, w + 1)]
+    hist = np.bincount(np.concatenate(first), minlength=_NB * lanes + 2 * r).astype(cdt)
     del first
-    dt = np.zeros((wk, k * hp), np.float64)
-    h2 = hist[2 * r * _NB : (2 * r + nl) * _NB].reshape(nl, _NB)
-    dt[0, :nl] = (cv2.LUT(h2, f[:256]) if cdt == np.uint8 else f.take(h2)).sum(axis=1)
+    dt = np.empty((wk, lanes), np.float64)
+    dt[:, nl:] = 0.0
+    h2 = hist[2 * r : 2 * r + _NB * lanes].reshape(_NB, lanes)[:, :nl]
+    dt[0, :nl] = (cv2.LUT(h2, f[:256]) if cdt == np.uint8 else f.take(h2)).sum(axis=0)
 
-    views = [hist[(2 * r - d) * _NB :] for d in range(nrows)]
-    takes = [v.take for v in views]  # the methods: np.take's Python wrapper costs ~1 us a call
+    views = [hist[2 * r - d :] for d in range(nrows)]
+    # The methods: np.take's Python wrapper costs ~1 us a call. Indices are in range by
+    # construction (q <= 257 * lanes - 1, view offset <= 2r), so mode="wrap" never wraps; it
+    # only skips the buffered bounds check of mode="raise" (~8 % of the total).
+    takes = [v.take for v in views]
     puts = [v.__setitem__ for v in views]
     rec = np.empty((2 * nrows, nl), cdt)
     rec_rem = list(rec[:nrows])
@@ -141,12 +150,12 @@ def _band_sums(
     for t in range(1, wk):
         for d in rows:
             ix = q[t + rem_row[d], d : d + nl]
-            takes[d](ix, out=tmp)
+            takes[d](ix, out=tmp, mode="wrap")
             sub(tmp, one, out=rec_rem[d])  # removal: record the count after
             puts[d](ix, rec_rem[d])
         for d in rows:
             ix = q[t + ins_row[d], d : d + nl]
-            takes[d](ix, out=rec_ins[d])  # insertion: record the count before
+            takes[d](ix, out=rec_ins[d], mode="wrap")  # insertion: record the count before
             add(rec_ins[d], one, out=tmp)
             puts[d](ix, tmp)
         if cdt == np.uint8:
@@ -163,7 +172,7 @@ def entropy_map(gray: npt.NDArray[np.uint8], radius: int = 5, *, workers: int = 
 
     Equals ``skimage.filters.rank.entropy(gray, skimage.morphology.disk(radius))`` (float64,
     0..8 bits; out-of-image neighbours are not counted). ``workers > 1`` splits the rows
-    between threads (numpy releases the GIL in the hot loop); the default 1 leaves the other
+    between threads, which helps only when a core is free; the default 1 leaves the other
     core to the memorability CNN.
     """
     gray = _check_gray(gray)
@@ -178,8 +187,9 @@ def entropy_map(gray: npt.NDArray[np.uint8], radius: int = 5, *, workers: int = 
     if nfp >= 65535:
         raise ScoringError(f"entropy radius {r} is too large (footprint of {nfp} pixels)")
 
-    # Column strips: more lanes per numpy call, fewer Python-level steps.
-    k = max(1, min(8, wid // 128, -(-4096 // hgt)))
+    # Column strips: more lanes per numpy call, fewer Python-level steps (~5600 lanes is
+    # best measured at 1135 x 1135, where k = 5 also divides the width).
+    k = max(1, min(8, wid // 128, (5600 + hgt // 2) // hgt))
     wk = -(-wid // k)
     lpad = r
     pt = np.full((wk * k + 2 * lpad, hgt + 2 * r), _OUT, np.uint16)
