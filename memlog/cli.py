@@ -161,6 +161,9 @@ def build_parser() -> argparse.ArgumentParser:
     _load_commands()
     for b in _BUILDERS:
         b(sub)
+    for p in sub.choices.values():  # -q works after the subcommand too
+        p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                       help="no progress bars or status lines")
     return parser
 
 

@@ -237,3 +237,41 @@ def _add_map(sub: Any) -> None:
     p.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC", help="camera topic(s) to map")
     _add_config_flags(p)
     p.set_defaults(func=cmd_map)
+
+
+# -- localize -----------------------------------------------------------------------------
+def cmd_localize(args: argparse.Namespace) -> int:
+    from memlog.localize.pipeline import localize
+
+    res = localize(args.map, args.query, args.output, k=args.k, topics=args.topics, stride=args.stride,
+                   annotate=args.annotate, query_descriptors=args.query_descriptors)
+    d = res.to_dict()
+    t = d["match_seconds_per_query"]["seconds_per_query"]
+    info(f"memlog: {res.n_queries} query frames matched against {res.n_map} map frames; "
+         f"{t * 1e3:.3f} ms per query")
+    if d["match_seconds_per_query_full_reference"]:
+        tf = d["match_seconds_per_query_full_reference"]
+        info(f"memlog: against the full reference drive ({tf['n_refs']} frames) it would take "
+             f"{tf['seconds_per_query'] * 1e3:.3f} ms per query")
+    info(f"memlog: wrote {res.output}" + (f" and {res.annotated}" if res.annotated else ""))
+    if args.json:
+        print(json.dumps(d, indent=2))
+    return EXIT_OK
+
+
+@register
+def _add_localize(sub: Any) -> None:
+    p = sub.add_parser("localize", help="match every frame of a query log against a map's descriptors",
+                       description="Describe each frame of QUERY_LOG like the map was described, find the nearest "
+                                   "map frames (exact search) and write a match table (query frame, best reference "
+                                   "frames, similarities, confidence) to Parquet or CSV.")
+    p.add_argument("map", help="reference descriptors (MAP.parquet from `memlog map`)")
+    p.add_argument("query", help="query log (MCAP, ROS 1 .bag or ROS 2 bag directory)")
+    p.add_argument("-o", "--output", required=True, help="matches .parquet or .csv")
+    p.add_argument("-k", type=int, default=5, help="reference frames per query")
+    p.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC", help="query camera topic")
+    p.add_argument("--stride", type=int, default=1, help="every n-th query frame")
+    p.add_argument("--annotate", metavar="OUT.mcap", help="also write the query log with a T/memlog/match channel")
+    p.add_argument("--query-descriptors", metavar="PATH", help="cache query descriptors here (reused when present)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.set_defaults(func=cmd_localize)

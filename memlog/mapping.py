@@ -177,6 +177,25 @@ def _kept_size(reader: LogReader, topics: list[str], kept: dict[str, set[int]]) 
     return total, kept_b
 
 
+def write_reference_descriptors(
+    reader: LogReader,
+    frames: list[Frame],
+    score_recs: dict[str, dict[int, dict[str, Any]]],
+    track: PositionTrack | None,
+    kind: str,
+    path: Path,
+    extra: dict[str, Any],
+) -> Path:
+    """Describe the kept frames and write them to ``path`` (Parquet)."""
+    from memlog.descriptors.base import make_describer
+    from memlog.descriptors.extract import build_table, describe_frames
+    from memlog.descriptors.parquet import write_descriptors
+
+    describer = make_describer(kind)
+    kept, desc = describe_frames(progress(frames, total=len(frames), desc="describe", unit="frame"), describer, reader)
+    return write_descriptors(path, build_table(kept, desc, describer, scores=score_recs, track=track, extra=extra))
+
+
 def collect_scores(
     log: str | os.PathLike[str], config: ScoreConfig, topics: list[str] | None = None, stride: int = 1
 ) -> dict[str, list[dict[str, Any]]]:
@@ -197,7 +216,7 @@ def collect_scores(
 
 def thumbnails_of(log: str | os.PathLike[str], topic: str, indices: set[int] | None = None) -> dict[int, np.ndarray]:
     """Cheap thumbnail descriptors (for view-change segments and near-duplicate removal)."""
-    from memlog.descriptors import make_describer
+    from memlog.descriptors.base import make_describer
 
     d = make_describer("thumbnail")
     out: dict[int, np.ndarray] = {}
@@ -243,8 +262,14 @@ def make_map(
     elif isinstance(scores, dict):
         recs_by_topic = scores
     else:
-        from memlog.score import read_scores
+        from memlog.score import read_scores, run_config
 
+        used = run_config(scores)
+        if needs_all and used is not None and not (used.all_scores or used.mode == "paper"):
+            raise ConfigError(
+                f"{scores}: scored with early exit, so skipped scores are missing; --keep-fraction and "
+                "--select segment need every score: run `memlog score --all-scores` first"
+            )
         recs_by_topic = read_scores(scores)
     with open_log(log) as reader:
         if Path(output).resolve() == Path(reader.path).resolve():
@@ -311,7 +336,8 @@ def make_map(
         if descriptor:
             dpath = Path(descriptors_path) if descriptors_path else Path(output).with_suffix(".parquet")
             write_reference_descriptors(reader, desc_frames, score_recs, track, descriptor, dpath,
-                                        extra={"map": str(output), "thresholds": thresholds, "mode": mode})
+                                        extra={"map": str(output), "thresholds": thresholds, "mode": mode,
+                                               "frames_in": n_in, "keep_fraction": keep_fraction})
             result.descriptors = dpath
     result.seconds = time.perf_counter() - t0
     return result
