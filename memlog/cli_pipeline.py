@@ -275,3 +275,67 @@ def _add_localize(sub: Any) -> None:
     p.add_argument("--query-descriptors", metavar="PATH", help="cache query descriptors here (reused when present)")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=cmd_localize)
+
+
+# -- evaluate -----------------------------------------------------------------------------
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from memlog.evaluate.pipeline import EvalOptions, evaluate
+
+    config = config_from_args(args)
+    seg: dict[str, Any] = {}
+    if args.spacing_m is not None:
+        seg["spacing_m"] = args.spacing_m
+    if args.spacing_s is not None:
+        seg["spacing_s"] = args.spacing_s
+    if args.segment_by:
+        seg["by"] = args.segment_by
+    if args.select == "segment" and args.keep_fraction is None and not seg:
+        print("memlog: error: --select segment needs --keep-fraction or a spacing", file=sys.stderr)
+        return 2
+    opts = EvalOptions(descriptor=args.descriptor, select=args.select, keep_fraction=args.keep_fraction,
+                       dedup=args.dedup, tol_m=args.tolerance, seeds=args.seeds,
+                       paper_discarded=args.paper_discarded, reference_topic=args.reference_topic,
+                       query_topic=args.query_topic, segment=seg, report=not args.no_report)
+    res = evaluate(args.reference, args.query, args.output, config, truth=args.truth, options=opts)
+    rows = []
+    for name in ("full", "memorable", "uniform", "random"):
+        r = res[name]
+        fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
+        rows.append([name, str(r["frames"]), fmt(r["coverage"]), fmt(r["auc"]), fmt(r["recall@1"]),
+                     fmt(r.get("recall@5")), fmt(r["paper_protocol"]["auc"]), fmt(r["paper_protocol"]["recall@1"]),
+                     f"{r['match_seconds_per_query'] * 1e3:.3f}"])
+    print(_table(rows, ["map", "frames", "coverage", "AUC", "R@1", "R@5", "paper AUC", "paper R@1", "ms/query"]))
+    info(f"memlog: thresholds {res['memorable']['thresholds']}; wrote {args.output}/results.json"
+         + ("" if args.no_report else f" and {args.output}/report.html"))
+    return EXIT_OK
+
+
+@register
+def _add_evaluate(sub: Any) -> None:
+    p = sub.add_parser("evaluate", help="measure localization with the full map, the memorable map and baselines",
+                       description="Score the reference drive, build the memorable map, describe both drives, and "
+                                   "evaluate full / memorable / uniform / random maps of the same size under the "
+                                   "map-only and the paper protocol (AUC-PR, Recall@1/5/10, coverage), with the "
+                                   "paper's sweeps and criterion contribution. Writes OUT/results.json and "
+                                   "OUT/report.html; outputs already in OUT are reused.")
+    p.add_argument("--reference", required=True, help="reference log (the drive the map is built from)")
+    p.add_argument("--query", required=True, help="query log (the drive to localize)")
+    p.add_argument("--truth", help='JSON with "matches": [[reference frame indices] per query frame]; '
+                                   "default: positions of both logs within --tolerance")
+    p.add_argument("--tolerance", type=float, default=25.0, help="position truth: metres (default 25)")
+    p.add_argument("-o", "--output", required=True, help="output directory")
+    p.add_argument("--select", choices=["paper", "segment"], default="paper", help="selection mode of the map")
+    p.add_argument("--keep-fraction", type=float, help="calibrate thresholds / segment size to keep this fraction")
+    p.add_argument("--spacing-m", type=float, help="segment: metres per segment")
+    p.add_argument("--spacing-s", type=float, help="segment: seconds per segment")
+    p.add_argument("--segment-by", choices=["auto", "distance", "time", "count", "view"])
+    p.add_argument("--dedup", type=float, metavar="DIST", help="drop near-duplicate kept frames (cosine distance)")
+    p.add_argument("--descriptor", default="thumbnail", help="thumbnail, dinov2-cls or dinov2-gem")
+    p.add_argument("--seeds", type=int, default=20, help="random baseline seeds")
+    p.add_argument("--paper-discarded", choices=["false_negative", "true_negative"], default="false_negative",
+                   help="paper protocol: how a query whose best match was discarded counts")
+    p.add_argument("--reference-topic", help="reference camera topic (default: the first)")
+    p.add_argument("--query-topic", help="query camera topic (default: the first)")
+    p.add_argument("--no-report", action="store_true", help="skip the HTML report")
+    _add_config_flags(p)
+    p.set_defaults(func=cmd_evaluate)
