@@ -11,6 +11,7 @@ Exit codes (stable, for scripts):
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -179,6 +180,11 @@ def _load_commands() -> None:
                 raise
 
 
+def _on_sigterm(signum: int, frame: Any) -> None:
+    """SIGTERM unwinds like Ctrl-C, so writers drop their temporary files."""
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -186,6 +192,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     set_quiet(bool(args.quiet))
+    signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return int(args.func(args))
     except MemlogError as exc:

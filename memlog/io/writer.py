@@ -27,6 +27,13 @@ __all__ = ["McapLogWriter", "copy_log", "CopyStats"]
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
+def file_mode() -> int:
+    """Permission bits a plain ``open(path, "w")`` would give under the current umask."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 class McapLogWriter:
     """Write an MCAP file atomically.
 
@@ -136,6 +143,7 @@ class McapLogWriter:
             self._fh.flush()
             os.fsync(self._fh.fileno())
             self._fh.close()
+            os.chmod(self._tmp, file_mode())  # mkstemp makes 0600; outputs get the usual umask mode
             os.replace(self._tmp, self.path)
         except BaseException:
             self.abort()

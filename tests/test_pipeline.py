@@ -1,0 +1,178 @@
+"""map -> localize -> evaluate on the fixtures, with the real models."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+
+from memlog.config import ScoreConfig, load_config
+from memlog.descriptors.parquet import read_descriptors
+from memlog.errors import ConfigError
+from memlog.evaluate.pipeline import EvalOptions, evaluate
+from memlog.io import open_log
+from memlog.io.positions import read_track
+from memlog.localize.pipeline import localize
+from memlog.mapping import EmptyMapError, make_map
+from memlog.schemas import SCHEMAS
+from memlog.score import read_scores, score_log
+from tests.conftest import FIXTURES
+
+DEMO = FIXTURES / "demo.mcap"
+COMP = "/camera/image/compressed"
+RAW = "/camera/image_raw"
+
+
+@pytest.fixture(scope="session")
+def all_scored(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """demo.mcap, compressed topic, every score of every frame (shared by the tests below)."""
+    out = tmp_path_factory.mktemp("scored") / "reference.scored.mcap"
+    score_log(DEMO, out, ScoreConfig(all_scores=True), topics=[COMP])
+    return out
+
+
+def _passes(rec: dict, mt: float, st: float, et: float) -> bool:
+    return rec["ms"] >= mt and rec["ss"] >= st and rec["es"] >= et
+
+
+def test_map_with_fixed_thresholds(all_scored: Path, tmp_path: Path) -> None:
+    recs = read_scores(all_scored)[COMP]
+    th = dict(mt=0.5, st=0.6, et=0.15)
+    want = [r["frame_index"] for r in recs if _passes(r, **th)]
+    assert 0 < len(want) < len(recs), "fixture should keep some frames and drop others at these thresholds"
+    out = tmp_path / "map.mcap"
+    res = make_map(DEMO, out, ScoreConfig(**th), scores=all_scored, topics=[COMP], keep_topics=["/gps/fix"])
+    assert res.frames_kept == len(want) and res.frames_in == len(recs)
+    with open_log(DEMO) as src, open_log(out) as m:
+        kept = list(m.frames([COMP]))
+        assert [json.loads(x.data)["frame_index"] for x in m.messages([f"{COMP}/memlog/scores"])] == want
+        src_frames = {f.index: f for f in src.frames([COMP])}
+        assert [f.payload.data for f in kept] == [src_frames[i].payload.data for i in want]  # byte for byte
+        assert sum(1 for _ in m.messages(["/gps/fix"])) == 8  # kept whole
+        meta = dict(m.metadata())
+        assert json.loads(meta["memlog_map"]["thresholds"]) == th
+    table = read_descriptors(res.descriptors)  # type: ignore[arg-type]
+    assert list(table.frame_index) == want
+    assert np.allclose(np.linalg.norm(table.descriptors, axis=1), 1.0, atol=1e-5)
+    assert np.all(np.isfinite(table.positions["lat"]))
+    assert table.meta.kind == "thumbnail" and table.extra["frames_in"] == len(recs)
+
+
+def test_map_keep_fraction_and_raw_topic_reencoded(all_scored: Path, tmp_path: Path) -> None:
+    out = tmp_path / "map.mcap"
+    res = make_map(DEMO, out, ScoreConfig(), scores=all_scored, topics=[COMP], keep_fraction=0.5)
+    assert 3 <= res.frames_kept <= 5
+    th = res.thresholds
+    recs = read_scores(all_scored)[COMP]
+    assert res.frames_kept == sum(_passes(r, th["mt"], th["st"], th["et"]) for r in recs)
+    # a raw topic becomes CompressedImage (JPEG) on T/compressed; pixels close to the source
+    raw_scored = tmp_path / "raw.scored.mcap"
+    score_log(FIXTURES / "ros2idl.mcap", raw_scored, ScoreConfig(all_scores=True))
+    out2 = tmp_path / "raw_map.mcap"
+    make_map(FIXTURES / "ros2idl.mcap", out2, ScoreConfig(mt=0, st=0, et=0), scores=raw_scored, image_format="png")
+    with open_log(out2) as m, open_log(FIXTURES / "ros2idl.mcap") as src:
+        got = list(m.frames(["/camera/image_raw/compressed"]))
+        ref = list(src.frames())
+        assert len(got) == len(ref) == 2
+        for g, r in zip(got, ref):
+            assert g.payload.encoding == "png" and g.stamp_ns == r.stamp_ns
+            assert np.array_equal(g.decode_bgr(), r.decode_bgr())  # PNG is lossless
+
+
+def test_empty_map_is_an_error_that_suggests_keep_fraction(all_scored: Path, tmp_path: Path) -> None:
+    with pytest.raises(EmptyMapError, match="--keep-fraction"):
+        make_map(DEMO, tmp_path / "m.mcap", ScoreConfig(mt=0.99, st=0.99, et=0.99), scores=all_scored, topics=[COMP])
+    assert not (tmp_path / "m.mcap").exists()
+    r = subprocess.run([sys.executable, "-m", "memlog", "map", str(DEMO), "-o", str(tmp_path / "m.mcap"),
+                        "--scores", str(all_scored), "-t", COMP, "--et", "0.99"], capture_output=True, text=True)
+    assert r.returncode == 1 and "--keep-fraction" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_early_exit_scores_refused_for_calibration(tmp_path: Path) -> None:
+    scored = tmp_path / "s.mcap"
+    score_log(FIXTURES / "ros1.mcap", scored, ScoreConfig())
+    with pytest.raises(ConfigError, match="all-scores"):
+        make_map(FIXTURES / "ros1.mcap", tmp_path / "m.mcap", scores=scored, keep_fraction=0.5)
+
+
+def test_localize_finds_the_same_place(all_scored: Path, tmp_path: Path) -> None:
+    """Map = every compressed frame; queries = the raw frames of the same images: best match = same index."""
+    res = make_map(DEMO, tmp_path / "map.mcap", ScoreConfig(mt=0, st=0, et=0), scores=all_scored, topics=[COMP])
+    assert res.frames_kept == 8
+    loc = localize(res.descriptors, DEMO, tmp_path / "matches.csv", k=3, topics=[RAW],  # type: ignore[arg-type]
+                   annotate=tmp_path / "q.mcap")
+    import pyarrow.csv as pacsv
+
+    t = pacsv.read_csv(tmp_path / "matches.csv")
+    rows = t.to_pylist()
+    best = {r["query_id"]: r["ref_id"] for r in rows if r["rank"] == 0}
+    assert best == {i: i for i in range(8)}
+    assert loc.n_queries == 8 and loc.n_map == 8
+    validator = jsonschema.Draft202012Validator(SCHEMAS["memlog.Match"])
+    with open_log(tmp_path / "q.mcap") as q:
+        msgs = [json.loads(m.data) for m in q.messages([f"{RAW}/memlog/match"])]
+    assert len(msgs) == 8
+    for m in msgs:
+        validator.validate(m)
+        assert m["matches"][0]["frame_index"] == m["frame_index"]
+
+
+def test_evaluate_end_to_end(all_scored: Path, tmp_path: Path) -> None:
+    out = tmp_path / "eval"
+    out.mkdir()
+    shutil.copyfile(all_scored, out / "reference.scored.mcap")  # reused: same settings
+    truth = tmp_path / "truth.json"
+    truth.write_text(json.dumps({"matches": [[i] for i in range(8)]}))
+    res = evaluate(DEMO, DEMO, out, ScoreConfig(), truth=truth,
+                   options=EvalOptions(keep_fraction=0.5, reference_topic=COMP, query_topic=RAW, seeds=5))
+    saved = json.loads((out / "results.json").read_text())
+    for name in ("full", "memorable", "uniform", "random"):
+        for key in ("frames", "coverage", "auc", "recall@1", "recall@5", "recall@10", "match_seconds_per_query"):
+            assert key in saved[name], (name, key)
+        assert "auc" in saved[name]["paper_protocol"] and "recall@1" in saved[name]["paper_protocol"]
+    assert saved["full"]["recall@1"] == 1.0 and saved["full"]["coverage"] == 1.0  # same images
+    k = saved["memorable"]["frames"]
+    assert saved["uniform"]["frames"] == saved["random"]["frames"] == k
+    assert saved["memorable"]["coverage"] == pytest.approx(k / 8)  # exact truth: coverage = kept share
+    assert saved["memorable"]["recall@1"] == pytest.approx(k / 8)  # a kept place is always found
+    assert set(saved["memorable"]["thresholds"]) == {"mt", "st", "et"}
+    assert "std" in saved["random"] and saved["random"]["seeds"] == 5
+    assert [r["threshold"] for r in saved["sweeps"]["mt"]] == [round(0.1 * i, 1) for i in range(11)]
+    assert saved["sweeps"]["st"][0]["frames"] == 8
+    assert (out / "report.html").read_text().count("<svg") >= 6
+    assert (out / "map.mcap").is_file() and (out / "map.parquet").is_file()
+    assert res["memorable"]["frames"] == k
+
+
+def test_config_files_and_overrides(tmp_path: Path) -> None:
+    toml = tmp_path / "c.toml"
+    toml.write_text("[score]\nmt = 0.45\nst = 0.55\n")
+    assert load_config(path=toml, et=0.3) == ScoreConfig(mt=0.45, st=0.55, et=0.3)
+    yaml = tmp_path / "c.yaml"
+    yaml.write_text("mt: 0.4\nnormalize: static\n")
+    assert load_config(path=yaml).normalize == "static"
+    assert load_config("st-lucia") == ScoreConfig(mt=0.45, st=0.55, et=0.35)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("mtt = 0.4\n")
+    with pytest.raises(ConfigError, match="unknown setting"):
+        load_config(path=bad)
+    with pytest.raises(ConfigError, match="within"):
+        ScoreConfig(mt=1.5)
+
+
+def test_positions_interpolated_to_frames() -> None:
+    with open_log(DEMO) as log:
+        track = read_track(log)
+        assert track is not None and track.kind == "gnss" and track.topic == "/gps/fix"
+        t = [f.log_time_ns for f in log.frames([COMP])]
+        xyz = track.at(t)
+    north = xyz[:, 1]
+    assert np.all(np.diff(north) >= -1e-9)  # the drive goes north, with a stop
+    assert north[4] == pytest.approx(north[3], abs=0.5)  # frames 3..5 stand still
+    assert north[2] - north[1] == pytest.approx(5.0, abs=0.05)  # 5 m per frame (both between fixes)
