@@ -55,6 +55,38 @@ def _add_stream_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--stride", type=int, default=1, help="score every n-th frame of each topic")
 
 
+def _add_selection_flags(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("frame selection")
+    g.add_argument("--select", choices=["paper", "segment"], default="paper",
+                   help="paper: keep frames passing MT/ST/ET; segment: best frame per place segment")
+    g.add_argument("--keep-fraction", type=float,
+                   help="pick thresholds (paper) or segment size (segment) so about this fraction is kept")
+    g.add_argument("--spacing-m", type=float, help="segment: one frame per this many metres travelled")
+    g.add_argument("--spacing-s", type=float, help="segment: one frame per this many seconds")
+    g.add_argument("--segment-by", choices=["auto", "distance", "time", "count", "view"], help="segment boundaries")
+    g.add_argument("--dedup", type=float, metavar="DIST",
+                   help="drop kept frames within this cosine distance of an already kept one (loops, stops)")
+
+
+def segment_from_args(args: argparse.Namespace) -> dict[str, Any] | None:
+    """Segment settings from the flags; None (after printing why) when they do not fit together."""
+    seg: dict[str, Any] = {}
+    if args.spacing_m is not None:
+        seg["spacing_m"] = args.spacing_m
+    if args.spacing_s is not None:
+        seg["spacing_s"] = args.spacing_s
+    if args.segment_by:
+        seg["by"] = args.segment_by
+    if seg and args.select != "segment":
+        print("memlog: error: --spacing-m/--spacing-s/--segment-by need --select segment", file=sys.stderr)
+        return None
+    if args.select == "segment" and args.keep_fraction is None and not seg:
+        print("memlog: error: --select segment needs --keep-fraction or a spacing (--spacing-m / --spacing-s)",
+              file=sys.stderr)
+        return None
+    return seg
+
+
 # -- models -------------------------------------------------------------------------------
 def cmd_models(args: argparse.Namespace) -> int:
     from memlog.models.registry import list_models, prepare_models
@@ -170,19 +202,8 @@ def cmd_map(args: argparse.Namespace) -> int:
     from memlog.mapping import make_map
 
     config = config_from_args(args)
-    seg: dict[str, Any] = {}
-    if args.spacing_m is not None:
-        seg["spacing_m"] = args.spacing_m
-    if args.spacing_s is not None:
-        seg["spacing_s"] = args.spacing_s
-    if args.segment_by:
-        seg["by"] = args.segment_by
-    if seg and args.select != "segment":
-        print("memlog: error: --spacing-m/--spacing-s/--segment-by need --select segment", file=sys.stderr)
-        return 2
-    if args.select == "segment" and args.keep_fraction is None and not seg:
-        print("memlog: error: --select segment needs --keep-fraction or a spacing (--spacing-m / --spacing-s)",
-              file=sys.stderr)
+    seg = segment_from_args(args)
+    if seg is None:
         return 2
     res = make_map(
         args.log, args.output, config, scores=args.scores, topics=args.topics, mode=args.select,
@@ -217,15 +238,7 @@ def _add_map(sub: Any) -> None:
     p.add_argument("log", help="MCAP file, ROS 1 .bag or ROS 2 bag directory")
     p.add_argument("-o", "--output", required=True, help="map .mcap")
     p.add_argument("--scores", help="annotated MCAP from `memlog score` to reuse instead of scoring again")
-    p.add_argument("--select", choices=["paper", "segment"], default="paper",
-                   help="paper: keep frames passing MT/ST/ET; segment: best frame per place segment")
-    p.add_argument("--keep-fraction", type=float,
-                   help="pick thresholds (paper) or segment size (segment) so about this fraction is kept")
-    p.add_argument("--spacing-m", type=float, help="segment: one frame per this many metres travelled")
-    p.add_argument("--spacing-s", type=float, help="segment: one frame per this many seconds")
-    p.add_argument("--segment-by", choices=["auto", "distance", "time", "count", "view"], help="segment boundaries")
-    p.add_argument("--dedup", type=float, metavar="DIST",
-                   help="drop kept frames within this cosine distance of an already kept one (loops, stops)")
+    _add_selection_flags(p)
     p.add_argument("--keep-topic", action="append", metavar="TOPIC", help="copy this topic whole (GPS, odometry...)")
     p.add_argument("--position-topic", help="NavSatFix/pose/odometry topic for positions (default: first found)")
     p.add_argument("--image-format", choices=["jpeg", "png"], default="jpeg", help="encoding of raw frames")
@@ -282,15 +295,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from memlog.evaluate.pipeline import EvalOptions, evaluate
 
     config = config_from_args(args)
-    seg: dict[str, Any] = {}
-    if args.spacing_m is not None:
-        seg["spacing_m"] = args.spacing_m
-    if args.spacing_s is not None:
-        seg["spacing_s"] = args.spacing_s
-    if args.segment_by:
-        seg["by"] = args.segment_by
-    if args.select == "segment" and args.keep_fraction is None and not seg:
-        print("memlog: error: --select segment needs --keep-fraction or a spacing", file=sys.stderr)
+    seg = segment_from_args(args)
+    if seg is None:
         return 2
     opts = EvalOptions(descriptor=args.descriptor, select=args.select, keep_fraction=args.keep_fraction,
                        dedup=args.dedup, tol_m=args.tolerance, seeds=args.seeds,
@@ -324,12 +330,7 @@ def _add_evaluate(sub: Any) -> None:
                                    "default: positions of both logs within --tolerance")
     p.add_argument("--tolerance", type=float, default=25.0, help="position truth: metres (default 25)")
     p.add_argument("-o", "--output", required=True, help="output directory")
-    p.add_argument("--select", choices=["paper", "segment"], default="paper", help="selection mode of the map")
-    p.add_argument("--keep-fraction", type=float, help="calibrate thresholds / segment size to keep this fraction")
-    p.add_argument("--spacing-m", type=float, help="segment: metres per segment")
-    p.add_argument("--spacing-s", type=float, help="segment: seconds per segment")
-    p.add_argument("--segment-by", choices=["auto", "distance", "time", "count", "view"])
-    p.add_argument("--dedup", type=float, metavar="DIST", help="drop near-duplicate kept frames (cosine distance)")
+    _add_selection_flags(p)
     p.add_argument("--descriptor", default="thumbnail", help="thumbnail, dinov2-cls or dinov2-gem")
     p.add_argument("--seeds", type=int, default=20, help="random baseline seeds")
     p.add_argument("--paper-discarded", choices=["false_negative", "true_negative"], default="false_negative",

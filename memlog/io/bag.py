@@ -37,7 +37,42 @@ def _msgdef_text(conn: Any) -> tuple[str, str]:
     return (data if isinstance(data, str) else str(data)), fmt.lower()
 
 
-class Ros1BagLog(LogReader):
+class _RosbagsLog(LogReader):
+    """What the ROS 1 and ROS 2 bag readers share: a rosbags reader (None when the bag is read
+    by a fallback) and the channel table built from its connections."""
+
+    _reader: Any
+    _chans: dict[int, ChannelInfo]
+
+    def close(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+
+    def channels(self) -> list[ChannelInfo]:
+        return list(self._chans.values())
+
+    def message_counts(self) -> dict[int, int] | None:
+        if self._reader is None:
+            return None
+        return {c.id: c.msgcount for c in self._reader.connections}
+
+    def _fill_time_range(self, info: LogInfo) -> None:
+        if self._reader is not None and self._reader.message_count:
+            info.start_ns, info.end_ns = self._reader.start_time, self._reader.end_time - 1
+
+    def _rosbags_messages(self, topics: set[str] | None, start_ns: int | None, end_ns: int | None) -> Iterator[RawMessage]:
+        conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
+        if not conns:
+            return
+        try:
+            for conn, ts, raw in self._reader.messages(connections=conns, start=start_ns, stop=end_ns):
+                yield RawMessage(self._chans[conn.id], ts, ts, 0, bytes(raw))
+        except Exception as exc:
+            self.report.truncated = True
+            self.warn(f"{self.path}: bag is damaged ({type(exc).__name__}: {exc}); read everything before it")
+
+
+class Ros1BagLog(_RosbagsLog):
     """A ROS 1 bag (v2.0). Messages keep their ROS 1 serialization."""
 
     format = "ros1bag"
@@ -69,37 +104,13 @@ class Ros1BagLog(LogReader):
             schema = SchemaInfo(_ros1_name(c.msgtype), "ros1msg", text.encode())
             self._chans[c.id] = ChannelInfo(c.id, c.topic, "ros1", schema, meta)
 
-    def close(self) -> None:
-        if self._reader is not None:
-            self._reader.close()
-
-    def channels(self) -> list[ChannelInfo]:
-        return list(self._chans.values())
-
-    def message_counts(self) -> dict[int, int] | None:
-        if self._reader is None:
-            return None
-        return {c.id: c.msgcount for c in self._reader.connections}
-
-    def _fill_time_range(self, info: LogInfo) -> None:
-        if self._reader is not None and self._reader.message_count:
-            info.start_ns, info.end_ns = self._reader.start_time, self._reader.end_time - 1
-
     def _iter_messages(
         self, topics: set[str] | None, start_ns: int | None, end_ns: int | None, log_time_order: bool
     ) -> Iterator[RawMessage]:
         if self._reader is None:
             yield from self._scan.messages(topics, start_ns, end_ns)
-            return
-        conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
-        if not conns:
-            return
-        try:
-            for conn, ts, raw in self._reader.messages(connections=conns, start=start_ns, stop=end_ns):
-                yield RawMessage(self._chans[conn.id], ts, ts, 0, bytes(raw))
-        except Exception as exc:
-            self.report.truncated = True
-            self.warn(f"{self.path}: bag is damaged ({type(exc).__name__}: {exc}); read everything before it")
+        else:
+            yield from self._rosbags_messages(topics, start_ns, end_ns)
 
 
 class _Ros1Scanner:
@@ -210,7 +221,7 @@ class _Ros1Scanner:
             yield RawMessage(ch, t, t, 0, data)
 
 
-class Ros2BagLog(LogReader):
+class Ros2BagLog(_RosbagsLog):
     """A ROS 2 bag directory (sqlite3 or mcap storage). Messages keep their CDR bytes."""
 
     format = "ros2bag"
@@ -276,37 +287,13 @@ class Ros2BagLog(LogReader):
                 con.close()
         return out
 
-    def close(self) -> None:
-        if self._reader is not None:
-            self._reader.close()
-
-    def channels(self) -> list[ChannelInfo]:
-        return list(self._chans.values())
-
-    def message_counts(self) -> dict[int, int] | None:
-        if self._reader is None:
-            return None
-        return {c.id: c.msgcount for c in self._reader.connections}
-
-    def _fill_time_range(self, info: LogInfo) -> None:
-        if self._reader is not None and self._reader.message_count:
-            info.start_ns, info.end_ns = self._reader.start_time, self._reader.end_time - 1
-
     def _iter_messages(
         self, topics: set[str] | None, start_ns: int | None, end_ns: int | None, log_time_order: bool
     ) -> Iterator[RawMessage]:
         if self._reader is None:
             yield from self._fallback_messages(topics, start_ns, end_ns)
-            return
-        conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
-        if not conns:
-            return
-        try:
-            for conn, ts, raw in self._reader.messages(connections=conns, start=start_ns, stop=end_ns):
-                yield RawMessage(self._chans[conn.id], ts, ts, 0, bytes(raw))
-        except Exception as exc:
-            self.report.truncated = True
-            self.warn(f"{self.path}: bag is damaged ({type(exc).__name__}: {exc}); read everything before it")
+        else:
+            yield from self._rosbags_messages(topics, start_ns, end_ns)
 
     def _fallback_messages(
         self, topics: set[str] | None, start_ns: int | None, end_ns: int | None

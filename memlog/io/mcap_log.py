@@ -179,6 +179,10 @@ class McapLog(LogReader):
                 f"skipped its messages (log time {ci.message_start_time}..{ci.message_end_time})"
             )
             return None
+        return self._absorb(records)
+
+    def _absorb(self, records: list[Any]) -> list[Message]:
+        """Register the schemas and channels among ``records``; return their messages."""
         out = []
         for r in records:
             if isinstance(r, Schema):
@@ -252,11 +256,8 @@ class McapLog(LogReader):
         reader = StreamReader(self._fh, emit_chunks=True, record_size_limit=_RECORD_LIMIT)
         try:
             for rec in reader.records:
-                if isinstance(rec, Schema):
-                    self._schemas.setdefault(rec.id, _schema_info(rec))
-                elif isinstance(rec, Channel):
-                    if rec.id not in self._channels:
-                        self._add_channel(rec)
+                if isinstance(rec, (Schema, Channel)):
+                    self._absorb([rec])
                 elif isinstance(rec, Chunk):
                     try:
                         inner = breakup_chunk(rec, validate_crc=self.validate_crcs)
@@ -264,15 +265,7 @@ class McapLog(LogReader):
                         self.report.skipped_chunks += 1
                         self.warn(f"{self.path}: chunk before byte {self._fh.tell()} is damaged ({exc}); skipped")
                         continue
-                    msgs = []
-                    for r in inner:
-                        if isinstance(r, Schema):
-                            self._schemas.setdefault(r.id, _schema_info(r))
-                        elif isinstance(r, Channel):
-                            if r.id not in self._channels:
-                                self._add_channel(r)
-                        elif isinstance(r, Message):
-                            msgs.append(r)
+                    msgs = self._absorb(inner)
                     if want_messages:
                         msgs.sort(key=lambda m: m.log_time)
                         for m in msgs:
