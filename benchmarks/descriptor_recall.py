@@ -86,13 +86,13 @@ def describe_all(kinds: list[tuple[str, str, dict[str, Any]]], images: list[np.n
             out[label] = (x, (time.perf_counter() - t0) / len(images))
     for (resize, batch), members in groups.items():
         backbone = members[0][1]
-        pooled = {label: [] for label, _ in members}  # type: dict[str, list[np.ndarray]]
-        pool_time = {label: 0.0 for label, _ in members}
+        pooled: dict[str, list[np.ndarray]] = {label: [] for label, _ in members}
+        pool_time: dict[str, float] = {label: 0.0 for label, _ in members}
         t_tokens = 0.0
         for start in range(0, len(images), batch):
             t0 = time.perf_counter()
             x, mask = preprocess(images[start : start + batch], resize)
-            tok = backbone._run(x)
+            tok = backbone.forward(x)
             t_tokens += time.perf_counter() - t0
             for label, d in members:
                 t1 = time.perf_counter()

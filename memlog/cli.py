@@ -45,8 +45,15 @@ def _fmt_size(n: float) -> str:
 
 def _table(rows: Sequence[Sequence[str]], header: Sequence[str]) -> str:
     widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header))]
-    line = lambda r: "  ".join(str(c).ljust(w) for c, w in zip(r, widths)).rstrip()  # noqa: E731
+    def line(r: Sequence[str]) -> str:
+        return "  ".join(str(c).ljust(w) for c, w in zip(r, widths)).rstrip()
+
     return "\n".join([line(header), line(["-" * w for w in widths]), *(line(r) for r in rows)])
+
+
+def fmt3(v: float | None) -> str:
+    """A score with three decimals, or '-' when missing."""
+    return "-" if v is None else f"{v:.3f}"
 
 
 def _damaged(report: Any) -> bool:

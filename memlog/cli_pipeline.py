@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from memlog.cli import EXIT_ERROR, EXIT_OK, _fmt_size, _report_damage, _table, register
+from memlog.cli import EXIT_ERROR, EXIT_OK, _fmt_size, fmt3, _report_damage, _table, register
 from memlog.progress import info
 
 
@@ -306,7 +306,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     rows = []
     for name in ("full", "memorable", "uniform", "random"):
         r = res[name]
-        fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
+        fmt = fmt3
         rows.append([name, str(r["frames"]), fmt(r["coverage"]), fmt(r["auc"]), fmt(r["recall@1"]),
                      fmt(r.get("recall@5")), fmt(r["paper_protocol"]["auc"]), fmt(r["paper_protocol"]["recall@1"]),
                      f"{r['match_seconds_per_query'] * 1e3:.3f}"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Iterable, Iterator
 from typing import Any, TypeVar
 
@@ -27,10 +28,31 @@ def info(text: str) -> None:
         print(text, file=sys.stderr)
 
 
-def progress(it: Iterable[T], *, total: int | None = None, desc: str = "", unit: str = "msg", **kw: Any) -> Iterator[T]:
-    """Wrap an iterable in a tqdm bar on a terminal; pass it through otherwise."""
-    if _QUIET or not sys.stderr.isatty():
+def _log_lines(it: Iterable[T], total: int | None, desc: str, unit: str, every_s: float) -> Iterator[T]:
+    """Off a terminal (CI, nohup): a plain status line every ``every_s`` seconds."""
+    t0 = last = time.monotonic()
+    n = 0
+    for x in it:
+        yield x
+        n += 1
+        now = time.monotonic()
+        if now - last >= every_s:
+            last = now
+            rate = n / (now - t0)
+            of = f"/{total}" if total else ""
+            eta = f", about {(total - n) / rate:.0f} s left" if total and rate > 0 else ""
+            print(f"memlog: {desc}: {n}{of} {unit}s ({rate:.2f}/s{eta})", file=sys.stderr, flush=True)
+
+
+def progress(it: Iterable[T], *, total: int | None = None, desc: str = "", unit: str = "msg",
+             every_s: float = 30.0, **kw: Any) -> Iterator[T]:
+    """Wrap an iterable in a tqdm bar on a terminal, or status lines every ``every_s`` seconds
+    otherwise; nothing with --quiet."""
+    if _QUIET:
         yield from it
+        return
+    if not sys.stderr.isatty():
+        yield from _log_lines(it, total, desc, unit, every_s)
         return
     from tqdm import tqdm
 

@@ -107,7 +107,7 @@ def annotations_message(frame: Frame, s: FrameScore, config: ScoreConfig) -> dic
             "timestamp": ts, "position": {"x": x0 + 2, "y": y0 + 2}, "text": f"{d.class_name} {d.confidence:.2f}",
             "font_size": max(10.0, h / 30), "text_color": col, "background_color": _color(0, 0, 0, 0.5),
         })
-    f = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
+    from memlog.cli import fmt3 as f
     verdict = "KEEP" if s.selected else f"drop ({s.rejected_by})"
     bound = "" if s.ms_exact or s.ms is None else ("≥" if s.selected or s.rejected_by != "memorability" else "<")
     texts.append({
@@ -133,8 +133,8 @@ def scores_message(frame: Frame, s: FrameScore | None, config: ScoreConfig, erro
 
 def _map_png(m: np.ndarray, scale: float, w: int, h: int) -> bytes:
     img = np.clip(np.asarray(m, np.float64) * (255.0 / scale), 0, 255).astype(np.uint8)
-    img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-    return bytes(cv2.imencode(".png", img)[1])
+    small = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+    return bytes(cv2.imencode(".png", small)[1])
 
 
 def model_hashes(scorer: Scorer) -> dict[str, str]:

@@ -24,6 +24,7 @@ non-negative inputs; in letterbox mode only patches whose centre lies on the ima
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -208,8 +209,6 @@ def prepare_dinov2(*, force: bool = False, quiet: bool = False) -> Path:
     data = _edit_graph(src)
     _sidecar_path(target).unlink(missing_ok=True)
     _atomic_write_bytes(target, data, check=_smoke_test)
-    import hashlib
-
     import onnx
 
     from memlog import __version__
@@ -280,7 +279,13 @@ def preprocess(images_bgr: Sequence[npt.NDArray[Any]], resize: str = "stretch") 
 
 
 class DinoV2Describer(Describer):
-    """CLS-token or GeM-pooled DINOv2 ViT-S/14 descriptor (384-d)."""
+    """CLS-token or GeM-pooled DINOv2 ViT-S/14 descriptor (384-d).
+
+    ``model_sha256`` is the sha256 of the *source* weights (:data:`SOURCE_SHA256`), which is
+    what determines the numbers (the edited file's own hash depends on the onnx version).
+    ``model_path`` overrides the prepared model (it must be a model made by
+    :func:`prepare_dinov2`); ``threads`` sets onnxruntime's intra-op threads.
+    """
 
     version = "1"
     dim = WIDTH
@@ -325,9 +330,10 @@ class DinoV2Describer(Describer):
     def tokens(self, images_bgr: Sequence[npt.NDArray[Any]]) -> F32:
         """Backbone output ``[B, 257, 384]`` (CLS token first) for a batch of images."""
         x, _ = preprocess(images_bgr, self.resize)
-        return self._run(x)
+        return self.forward(x)
 
-    def _run(self, x: F32) -> F32:
+    def forward(self, x: F32) -> F32:
+        """Backbone tokens ``[B, 257, 384]`` of an input batch made by :func:`preprocess`."""
         try:
             out: F32 = self._session.run([TOKENS_OUTPUT], {INPUT_NAME: x})[0]
         except Exception as exc:
@@ -339,7 +345,7 @@ class DinoV2Describer(Describer):
         out = np.zeros((len(imgs), WIDTH), dtype=np.float32)
         for start in range(0, len(imgs), self.batch_size):
             x, mask = preprocess(imgs[start : start + self.batch_size], self.resize)
-            out[start : start + len(x)] = pool_tokens(self._run(x), self.pooling, self.gem_p, mask)
+            out[start : start + len(x)] = pool_tokens(self.forward(x), self.pooling, self.gem_p, mask)
         return out
 
 

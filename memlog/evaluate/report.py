@@ -10,7 +10,7 @@ from __future__ import annotations
 import base64
 import html
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +26,25 @@ __all__ = ["write_report", "svg_lines", "svg_histogram"]
 _COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"]
 
 
+def _scale(a0: float, a1: float, b0: float, b1: float) -> Callable[[float], float]:
+    """The linear map taking a0..a1 to b0..b1 (data to pixels)."""
+    def f(v: float) -> float:
+        return b0 + (float(v) - a0) / (a1 - a0) * (b1 - b0)
+
+    return f
+
+
+def _fmt(v: float) -> str:
+    return "-" if not np.isfinite(v) else f"{v:.3f}"
+
+
+def _spread(rows: list[int], n: int = 24) -> list[int]:
+    """Up to n rows spread evenly over ``rows``."""
+    if not rows:
+        return []
+    return [rows[i] for i in np.linspace(0, len(rows) - 1, min(n, len(rows))).astype(int)]
+
+
 def svg_lines(series: Sequence[tuple[str, Sequence[float], Sequence[float]]], *, title: str, xlabel: str,
               ylabel: str, w: int = 420, h: int = 280, xlim: tuple[float, float] | None = None,
               ylim: tuple[float, float] | None = None, marks: Sequence[float] = ()) -> str:
@@ -37,8 +56,8 @@ def svg_lines(series: Sequence[tuple[str, Sequence[float], Sequence[float]]], *,
     y0, y1 = ylim or (min(ys_all), max(ys_all))
     x1 = x1 if x1 > x0 else x0 + 1
     y1 = y1 if y1 > y0 else y0 + 1
-    sx = lambda x: pad_l + (x - x0) / (x1 - x0) * (w - pad_l - pad_r)  # noqa: E731
-    sy = lambda y: h - pad_b - (y - y0) / (y1 - y0) * (h - pad_b - pad_t)  # noqa: E731
+    sx = _scale(x0, x1, pad_l, w - pad_r)
+    sy = _scale(y0, y1, h - pad_b, pad_t)
     parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-size="11" font-family="sans-serif">',
              f'<text x="{w / 2}" y="14" text-anchor="middle" font-weight="bold">{html.escape(title)}</text>',
              f'<line x1="{pad_l}" y1="{h - pad_b}" x2="{w - pad_r}" y2="{h - pad_b}" stroke="#333"/>',
@@ -82,14 +101,14 @@ def svg_histogram(values: np.ndarray, *, title: str, bins: int = 20, w: int = 28
 
 def svg_timeline(table: ScoreTable, sel: Selection, w: int = 900, h: int = 240) -> str:
     """Scores over frame index; kept frames as ticks; gaps shaded."""
-    x = table.index.astype(float)
-    series = [("MS", x, table.ms), ("SS", x, table.ss), ("ES", x, table.es)]
+    x = [float(v) for v in table.index]
+    series = [("MS", x, list(table.ms)), ("SS", x, list(table.ss)), ("ES", x, list(table.es))]
     svg = svg_lines(series, title="drive timeline: scores per frame (ticks: kept frames, shaded: gaps)",
                     xlabel="frame index", ylabel="score", w=w, h=h, ylim=(0.0, 1.0))
     pad_l, pad_r, pad_b, pad_t = 48, 10, 36, 24
-    x0, x1 = (float(x.min()), float(x.max())) if len(x) else (0.0, 1.0)
+    x0, x1 = (min(x), max(x)) if x else (0.0, 1.0)
     x1 = x1 if x1 > x0 else x0 + 1
-    sx = lambda v: pad_l + (v - x0) / (x1 - x0) * (w - pad_l - pad_r)  # noqa: E731
+    sx = _scale(x0, x1, pad_l, w - pad_r)
     extra = []
     for g in sel.gaps:
         extra.append(f'<rect x="{sx(g.start_index):.1f}" y="{pad_t}" width="{max(1.0, sx(g.end_index) - sx(g.start_index)):.1f}" '
@@ -113,8 +132,10 @@ def _thumbs(log: str, topic: str, indices: set[int], width: int = 160) -> dict[i
                 except Exception:
                     continue
                 h = max(1, int(img.shape[0] * width / img.shape[1]))
-                img = cv2.resize(img, (width, h), interpolation=cv2.INTER_AREA if img.shape[1] > width else cv2.INTER_NEAREST)
-                out[f.index] = base64.b64encode(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])[1]).decode()
+                interp = cv2.INTER_AREA if img.shape[1] > width else cv2.INTER_NEAREST
+                small = cv2.resize(img, (width, h), interpolation=interp)
+                jpg = bytes(cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 80])[1])
+                out[f.index] = base64.b64encode(jpg).decode()
             if len(out) == len(indices):
                 break
     return out
@@ -127,7 +148,7 @@ def _gallery(title: str, rows: list[int], table: ScoreTable, sel: Selection, thu
         if i not in thumbs:
             continue
         why = "kept" if sel.keep[r] else f"dropped: {sel.reason[r]}"
-        f = lambda v: "-" if not np.isfinite(v) else f"{v:.3f}"  # noqa: E731
+        f = _fmt
         cells.append(f'<figure><img src="data:image/jpeg;base64,{thumbs[i]}"/><figcaption>#{i} {why}<br>'
                      f"MS {f(table.ms[r])} SS {f(table.ss[r])} ES {f(table.es[r])}</figcaption></figure>")
     return f"<h3>{html.escape(title)}</h3><div class='gallery'>{''.join(cells)}</div>"
@@ -171,10 +192,9 @@ def write_report(path: Path, results: dict[str, Any], table: ScoreTable, sel: Se
     hists = [svg_histogram(table.ms, title="MS", threshold=th.get("mt")),
              svg_histogram(table.ss, title="SS", threshold=th.get("st")),
              svg_histogram(table.es, title="ES", threshold=th.get("et"))]
-    kept_rows = list(np.nonzero(sel.keep)[0])
-    drop_rows = list(np.nonzero(~sel.keep)[0])
-    pick = lambda rows: [rows[i] for i in np.linspace(0, len(rows) - 1, min(24, len(rows))).astype(int)] if rows else []  # noqa: E731
-    kr, dr = pick(kept_rows), pick(drop_rows)
+    kept_rows = [int(r) for r in np.nonzero(sel.keep)[0]]
+    drop_rows = [int(r) for r in np.nonzero(~sel.keep)[0]]
+    kr, dr = _spread(kept_rows), _spread(drop_rows)
     thumbs = _thumbs(reference, topic, {int(table.index[r]) for r in kr + dr})
     contrib = results["criterion_contribution"]
     doc = f"""<!doctype html><html><head><meta charset="utf-8"><title>memlog evaluation</title>

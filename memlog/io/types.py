@@ -5,6 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+import numpy as np
+import numpy.typing as npt
+
 __all__ = ["ImagePayload", "Frame", "TopicInfo", "LogInfo"]
 
 PayloadKind = Literal["compressed", "raw"]
@@ -47,13 +50,13 @@ class Frame:
     payload: ImagePayload
     msgtype: str = ""
 
-    def decode_bgr(self) -> "object":
+    def decode_bgr(self) -> npt.NDArray[np.uint8]:
         """Decode the payload to an HxWx3 uint8 BGR array (see :mod:`memlog.io.image`)."""
         from memlog.io.image import decode_bgr
 
         return decode_bgr(self.payload)
 
-    def decode_gray(self) -> "object":
+    def decode_gray(self) -> npt.NDArray[np.uint8]:
         """Decode the payload to an HxW uint8 grey array (see :mod:`memlog.io.image`)."""
         from memlog.io.image import decode_gray
 

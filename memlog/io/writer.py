@@ -139,7 +139,7 @@ class McapLogWriter:
         if self._closed:
             return self.path
         try:
-            self._writer.finish()
+            self._writer.finish()  # type: ignore[no-untyped-call]
             self._fh.flush()
             os.fsync(self._fh.fileno())
             self._fh.close()
@@ -213,8 +213,8 @@ def copy_log(
     for att in reader.attachments():
         writer.add_attachment(att.name, att.media_type, att.data, att.log_time, att.create_time)
         stats.attachments += 1
-    for name, data in extra_metadata:
-        writer.add_metadata(name, data)
+    for extra_name, extra_data in extra_metadata:
+        writer.add_metadata(extra_name, extra_data)
     return stats
 
 

@@ -143,10 +143,10 @@ def memorability_model_path(mode: str = "exact") -> Path:
     if mode == "fast":
         from memlog.models.quantize import resmem_int8_path
 
-        return resmem_int8_path()
+        return Path(resmem_int8_path())
     from memlog.models.resmem import resmem_onnx_path
 
-    return resmem_onnx_path()
+    return Path(resmem_onnx_path())
 
 
 def model_hashes(config: Any = None) -> dict[str, str]:

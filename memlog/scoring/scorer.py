@@ -63,6 +63,10 @@ class CheapStage:
     timing_ms: dict[str, float] = field(default_factory=dict)
 
 
+def _round6(v: float | None) -> float | None:
+    return None if v is None else round(float(v), 6)
+
+
 @dataclass
 class FrameScore:
     """Scores of one frame (None where a stage was skipped)."""
@@ -87,7 +91,7 @@ class FrameScore:
         m = None
         if self.memorability is not None:
             m = [[None if not np.isfinite(v) else round(float(v), 6) for v in row] for row in self.memorability]
-        r = lambda v: None if v is None else round(float(v), 6)  # noqa: E731
+        r = _round6
         return {
             "ms": r(self.ms), "ms_low": r(self.ms_low), "ms_high": r(self.ms_high), "ms_exact": self.ms_exact,
             "ss": r(self.ss), "es": r(self.es), "memorability": m, "crops_scored": self.crops_scored,
@@ -164,12 +168,12 @@ class Scorer:
             out.rejected_by = "staticity"
             if not c.all_scores and c.mode != "paper":
                 return out
-        gray = cv2.cvtColor(f, cv2.COLOR_BGR2GRAY)
+        gray: npt.NDArray[np.uint8] = np.asarray(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY), np.uint8)
         if c.mode == "paper":
             from skimage.filters.rank import entropy as sk_entropy
             from skimage.morphology import disk
 
-            emap = sk_entropy(gray, disk(c.entropy_radius)).astype(np.float64)
+            emap = np.asarray(sk_entropy(gray, disk(c.entropy_radius)), np.float64)  # type: ignore[no-untyped-call]
         else:
             emap = entropy_map(gray, c.entropy_radius)
         es = entropy_score(emap, s_map)
