@@ -59,7 +59,7 @@ class _RawLayout:
 
 def _cvt(code: int) -> _Convert:
     def convert(arr: Array) -> Array:
-        return np.asarray(cv2.cvtColor(arr, code))
+        return np.asarray(cv2.cvtColor(arr, code))  # type: ignore[arg-type]
 
     return convert
 
@@ -239,10 +239,10 @@ def _to_uint8(arr: Array) -> npt.NDArray[np.uint8]:
     if arr.dtype == np.uint8:
         return arr.astype(np.uint8, copy=False)
     if arr.dtype == np.uint16:
-        return (arr >> 8).astype(np.uint8)
+        return np.asarray(np.right_shift(arr, 8), dtype=np.uint8)
     if arr.dtype.kind == "f":
-        clipped = np.clip(np.nan_to_num(arr, nan=0.0), 0.0, 1.0)
-        return np.rint(clipped * 255.0).astype(np.uint8)
+        clipped = np.clip(np.nan_to_num(np.asarray(arr, np.float64), nan=0.0), 0.0, 1.0)
+        return np.asarray(np.rint(clipped * 255.0), dtype=np.uint8)
     raise ImageDecodeError(f"decoded pixels have unsupported type {arr.dtype}")
 
 

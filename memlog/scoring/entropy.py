@@ -125,7 +125,7 @@ def _band_sums(
     dt = np.empty((wk, lanes), np.float64)
     dt[:, nl:] = 0.0
     h2 = hist[2 * r : 2 * r + _NB * lanes].reshape(_NB, lanes)[:, :nl]
-    dt[0, :nl] = (cv2.LUT(h2, f[:256]) if cdt == np.uint8 else f.take(h2)).sum(axis=0)
+    dt[0, :nl] = (cv2.LUT(h2, f[:256]) if cdt == np.uint8 else f.take(h2)).sum(axis=0)  # type: ignore[arg-type]
 
     views = [hist[2 * r - d :] for d in range(nrows)]
     # The methods: np.take's Python wrapper costs ~1 us a call. Indices are in range by

@@ -336,9 +336,9 @@ def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> S
                     counts={c: counts[c] for c in CRITERIA if counts.get(c)},
                 )
             )
-    reason = codes_to_reasons(code)
+    failed = codes_to_reasons(code)
     reasons: list[str | None] = [
-        None if k else ("segment" if r is None else r) for k, r in zip(keep.tolist(), reason)
+        None if k else ("segment" if r is None else r) for k, r in zip(keep.tolist(), failed)
     ]
     info.update({"combine": cfg.combine, "weights": list(cfg.weights), "n_gaps": len(gaps)})
     return Selection(

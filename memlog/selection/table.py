@@ -133,13 +133,13 @@ class ScoreTable:
         """Rows whose position is known (all coordinates finite); all False without positions."""
         if self.positions is None:
             return np.zeros(self.n, dtype=bool)
-        return np.all(np.isfinite(self.positions), axis=1)
+        return np.asarray(np.all(np.isfinite(self.positions), axis=1), dtype=bool)
 
     def known_descriptors(self) -> NDArray[np.bool_]:
         """Rows whose descriptor is known (all finite); all False without descriptors."""
         if self.descriptors is None:
             return np.zeros(self.n, dtype=bool)
-        return np.all(np.isfinite(self.descriptors), axis=1)
+        return np.asarray(np.all(np.isfinite(self.descriptors), axis=1), dtype=bool)
 
     def take(self, rows: ArrayLike) -> ScoreTable:
         """A new table with the given rows (a bool mask or increasing row positions)."""
