@@ -31,8 +31,7 @@ from memlog.io import Frame, McapLogWriter, open_log
 from memlog.io.base import LogReader
 from memlog.io.camera import camera_kind
 from memlog.io.positions import PositionTrack, read_track
-from memlog.io.records import ChannelInfo
-from memlog.progress import info, progress
+from memlog.progress import progress
 from memlog.schemas import schema_bytes
 from memlog.selection import RedundancyConfig, ScoreTable, Selection, select
 

@@ -6,7 +6,6 @@ no-op when the converted model is already cached), so these tests are never skip
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import struct

@@ -28,8 +28,7 @@ import hashlib
 import json
 import os
 import sys
-import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +37,7 @@ import numpy as np
 import numpy.typing as npt
 
 from memlog.descriptors.base import Describer, as_bgr_list, l2_normalize
+from memlog.io.atomic import write_bytes_atomic
 from memlog.errors import DescriptorError, ModelError
 from memlog.models.fetch import (
     cache_dir,
@@ -103,24 +103,6 @@ def _read_sidecar(model: Path) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     return data if isinstance(data, dict) else None
-
-
-def _atomic_write_bytes(target: Path, data: bytes, check: Callable[[Path], None] | None = None) -> None:
-    """Write ``data`` to a temporary file next to ``target``, run ``check`` on it, rename."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        if check is not None:
-            check(Path(tmp))
-        os.replace(tmp, target)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
 
 
 def _edit_graph(src: Path) -> bytes:
@@ -208,7 +190,7 @@ def prepare_dinov2(*, force: bool = False, quiet: bool = False) -> Path:
         )
     data = _edit_graph(src)
     _sidecar_path(target).unlink(missing_ok=True)
-    _atomic_write_bytes(target, data, check=_smoke_test)
+    write_bytes_atomic(target, data, check=_smoke_test)
     import onnx
 
     from memlog import __version__
@@ -225,7 +207,7 @@ def prepare_dinov2(*, force: bool = False, quiet: bool = False) -> Path:
         "memlog_version": __version__,
         "onnx_version": onnx.__version__,
     }
-    _atomic_write_bytes(_sidecar_path(target), (json.dumps(sidecar, indent=2) + "\n").encode())
+    write_bytes_atomic(_sidecar_path(target), (json.dumps(sidecar, indent=2) + "\n").encode())
     if not quiet:
         print(f"memlog: wrote DINOv2 backbone model to {target}", file=sys.stderr)
     return target

@@ -14,11 +14,9 @@ Files are written atomically (temporary file in the same directory, then ``os.re
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,6 +27,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from memlog.descriptors.base import DescriptorMeta
+from memlog.io.atomic import atomic_output
 from memlog.errors import DescriptorError
 
 __all__ = [
@@ -47,25 +46,6 @@ I64 = npt.NDArray[np.int64]
 POSITION_COLUMNS: dict[str, tuple[str, ...]] = {"geo": ("lat", "lon", "alt"), "local": ("x", "y", "z")}
 _SCORES = ("ms", "ss", "es")
 _PREFIX = "memlog."
-
-
-@contextlib.contextmanager
-def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; rename it to ``path`` if the block succeeds.
-
-    On any exception the temporary file is removed and ``path`` is left untouched.
-    """
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
-        yield tmp
-        os.replace(tmp, target)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 @dataclass

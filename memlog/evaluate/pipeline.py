@@ -36,7 +36,7 @@ from memlog.evaluate.metrics import (
 from memlog.localize.match import match, time_per_query
 from memlog.localize.pipeline import describe_log
 from memlog.progress import info
-from memlog.selection import ScoreTable, Selection, random_masks, uniform_mask
+from memlog.selection import ScoreTable, random_masks, uniform_mask
 from memlog.selection.paper import first_failing
 
 __all__ = ["evaluate", "EvalOptions", "SWEEP_STEPS"]

@@ -218,7 +218,6 @@ whose best match was discarded reports no match. Random: mean ± std over {resul
 wrong best match would have been discarded by: {html.escape(json.dumps(contrib['wrong_match_discarded_by']))}.</p>
 <h2>Frames</h2>{_gallery('selected', kr, table, sel, thumbs)}{_gallery('discarded', dr, table, sel, thumbs)}
 </body></html>"""
-    tmp = path.with_suffix(".html.tmp")
-    tmp.write_text(doc)
-    tmp.replace(path)
-    return path
+    from memlog.io.atomic import write_bytes_atomic
+
+    return write_bytes_atomic(path, doc.encode())

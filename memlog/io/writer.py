@@ -19,19 +19,13 @@ from mcap.writer import CompressionType, Writer
 
 from memlog import __version__
 from memlog.errors import LogWriteError
+from memlog.io.atomic import file_mode
 from memlog.io.base import LogReader
 from memlog.io.records import ChannelInfo, RawMessage
 
 __all__ = ["McapLogWriter", "copy_log", "CopyStats"]
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-
-
-def file_mode() -> int:
-    """Permission bits a plain ``open(path, "w")`` would give under the current umask."""
-    mask = os.umask(0)
-    os.umask(mask)
-    return 0o666 & ~mask
 
 
 class McapLogWriter:

@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
 
-from memlog.descriptors.parquet import atomic_output
+from memlog.io.atomic import atomic_output
 from memlog.errors import DescriptorError
 
 __all__ = ["match", "topk", "Confidence", "confidence", "QueryTiming", "time_per_query", "write_matches"]

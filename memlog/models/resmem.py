@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import sys
 import time
 from collections.abc import Mapping
@@ -29,6 +28,7 @@ import numpy.typing as npt
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from memlog.io.atomic import write_bytes_atomic
 from memlog.errors import ModelError
 from memlog.models.fetch import (
     cache_dir,
@@ -322,18 +322,6 @@ def build_onnx(sd: Mapping[str, Array], *, bn_probe: bool = False) -> onnx.Model
     return model
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def convert(model_pt: Path, out_onnx: Path) -> Path:
     """Convert a ResMem ``model.pt`` to ONNX at ``out_onnx`` plus a JSON sidecar; returns the path.
 
@@ -350,7 +338,7 @@ def convert(model_pt: Path, out_onnx: Path) -> Path:
     data = model.SerializeToString()
     del model
     out_onnx.parent.mkdir(parents=True, exist_ok=True)
-    _write_atomic(out_onnx, data)
+    write_bytes_atomic(out_onnx, data)
 
     side = {
         "source_package": RESMEM_DIST,
@@ -364,7 +352,7 @@ def convert(model_pt: Path, out_onnx: Path) -> Path:
         "inputs": {INPUT_NAME: ["N", 3, CROP, CROP]},
         "outputs": {OUTPUT_NAME: ["N", 1], FEATURES_NAME: ["N", 2048]},
     }
-    _write_atomic(out_onnx.with_suffix(".json"), (json.dumps(side, indent=2) + "\n").encode())
+    write_bytes_atomic(out_onnx.with_suffix(".json"), (json.dumps(side, indent=2) + "\n").encode())
     return out_onnx
 
 
