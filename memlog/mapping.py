@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ from memlog.io import Frame, McapLogWriter, open_log
 from memlog.io.base import LogReader
 from memlog.io.camera import camera_kind
 from memlog.io.positions import PositionTrack, read_track
+from memlog.io.records import RawMessage
 from memlog.progress import progress
 from memlog.schemas import schema_bytes
 from memlog.selection import RedundancyConfig, ScoreTable, Selection, select
@@ -240,7 +242,7 @@ def make_map(
     mode: str = "paper",
     keep_fraction: float | None = None,
     dedup_distance: float | None = None,
-    keep_topics: list[str] = (),  # type: ignore[assignment]
+    keep_topics: Sequence[str] = (),
     position_topic: str | None = None,
     image_format: str = "jpeg",
     jpeg_quality: int = 90,
@@ -342,7 +344,9 @@ def make_map(
     return result
 
 
-def _map_stream(reader: LogReader, cams: list[str], keep_topics: list[str], kept: dict[str, set[int]]):  # type: ignore[no-untyped-def]
+def _map_stream(
+    reader: LogReader, cams: list[str], keep_topics: list[str], kept: dict[str, set[int]]
+) -> Iterator[tuple[Frame, RawMessage] | RawMessage]:
     """Kept camera frames as (Frame, RawMessage) and whole kept topics as RawMessage, in log-time order."""
     from memlog.io.base import FrameError
 
