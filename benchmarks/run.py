@@ -180,17 +180,30 @@ def bench_io() -> None:
                        "convert MB/s", "convert msgs/s", "convert peak RSS MB"]))
 
 
+def _fast_ready() -> bool:
+    from memlog.errors import ModelError
+    from memlog.models.registry import memorability_model_path
+
+    try:
+        memorability_model_path("fast")
+        return True
+    except (ModelError, ImportError):
+        print("(fast mode skipped: run `memlog models prepare resmem-int8` first)")
+        return False
+
+
 def bench_score(n: int) -> None:
     rows = []
     agree_rows = []
     for log in ["euroc_micro_ros2_db3", "nordland_dev_summer.mcap"]:
-        res = {m: _case("score", log, m, str(n)) for m in ("paper", "exact", "fast", "all-scores")}
+        modes = ["paper", "exact", "all-scores"] + (["fast"] if _fast_ready() else [])
+        res = {m: _case("score", log, m, str(n)) for m in modes}
         p = res["paper"]
         for m, r in res.items():
             st = r["stage_ms"]
             rows.append([log, m, r["frames"], *(f"{st.get(k, 0):.1f}" for k in ("decode", "resize", "staticity", "entropy", "memorability")),
                          f"{r['crops_per_frame']:.1f}", f"{r['fps']:.3f}", f"{r['fps'] / p['fps']:.1f}x", f"{r['peak_mb']:.0f}"])
-        for m in ("exact", "fast"):
+        for m in [m for m in ("exact", "fast") if m in res]:
             same = sum(a[0] == b[0] for a, b in zip(p["decisions"], res[m]["decisions"]))
             agree_rows.append([log, m, f"{same}/{len(p['decisions'])}", f"{100.0 * same / len(p['decisions']):.1f} %",
                                sum(a[0] for a in res[m]["decisions"]), sum(a[0] for a in p["decisions"])])

@@ -23,7 +23,7 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
                    help="compute every score of every frame, even after it fails (for sweeps and reports)")
     mode = g.add_mutually_exclusive_group()
     mode.add_argument("--fast", dest="mode", action="store_const", const="fast",
-                      help="int8 memorability model: several times faster, approximate (see README)")
+                      help="experimental int8 memorability model (needs `memlog models prepare resmem-int8`)")
     mode.add_argument("--paper-literal", dest="mode", action="store_const", const="paper",
                       help="the literal pipeline: scikit-image entropy, all crops, no early exit (slow; reference)")
     g.add_argument("--normalize", choices=["all", "static"], help="divide MS/ES by all pixels (paper) or static pixels")
@@ -104,9 +104,13 @@ def cmd_models(args: argparse.Namespace) -> int:
     for m in models:
         if m.sha256:
             print(f"  {m.name}: sha256 {m.sha256}")
-    missing = [m.name for m in models if not m.ready]
+    from memlog.models.registry import DEFAULT_PREPARE
+
+    missing = [m.name for m in models if not m.ready and m.name in DEFAULT_PREPARE]
     if missing:
         print(f"\nmissing: {', '.join(missing)}: run `memlog models prepare`")
+    if any(m.name == "resmem-int8" and not m.ready for m in models):
+        print("\nfast mode (--fast, experimental) needs `memlog models prepare resmem-int8`")
     print("\nNote: ResMem weights (memorability) are licensed for NON-COMMERCIAL use only "
           "(ResMem Non-commercial License, University of Chicago).")
     return EXIT_OK if not missing or args.action == "list" else EXIT_ERROR
