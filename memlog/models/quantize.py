@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import sys
 import tempfile
 import time
@@ -32,6 +31,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from memlog.io.atomic import write_bytes_atomic
 from memlog.errors import ModelError
 from memlog.models.fetch import cache_dir, sha256_file
 from memlog.models.resmem import (
@@ -201,18 +201,6 @@ def _crops_sha256(crops: F32) -> str:
     return hashlib.sha256(np.ascontiguousarray(crops, dtype=np.float32).tobytes()).hexdigest()
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def quantize_resmem(
     fp32_path: Path,
     out_path: Path,
@@ -272,7 +260,7 @@ def quantize_resmem(
         except Exception as exc:  # onnxruntime raises many exception types
             raise ModelError(f"int8 quantisation of {fp32_path} failed: {exc}") from exc
         data = qtmp.read_bytes()
-        _write_atomic(out_path, data)
+        write_bytes_atomic(out_path, data)
     import onnxruntime
 
     side = {
@@ -294,7 +282,7 @@ def quantize_resmem(
         "inputs": {INPUT_NAME: ["N", 3, CROP, CROP]},
         "outputs": {OUTPUT_NAME: ["N", 1], FEATURES_NAME: ["N", 2048]},
     }
-    _write_atomic(out_path.with_suffix(".json"), (json.dumps(side, indent=2) + "\n").encode())
+    write_bytes_atomic(out_path.with_suffix(".json"), (json.dumps(side, indent=2) + "\n").encode())
     if not quiet:
         print(f"memlog: wrote {out_path} ({side['seconds']} s)", file=sys.stderr)
     return out_path
