@@ -131,17 +131,19 @@ def case_convert(log: str) -> dict[str, Any]:
     return {"messages": res.messages, "seconds": dt, "mb": res.bytes_in / 1e6, "peak_mb": _peak_mb(), "base_mb": base}
 
 
-def case_score(log: str, mode: str, limit: str) -> dict[str, Any]:
+def case_score(log: str, mode: str, limit: str, thresholds: str = "") -> dict[str, Any]:
     from memlog.config import ScoreConfig
     from memlog.io import open_log
     from memlog.scoring.scorer import Scorer
 
-    cfg = ScoreConfig(mode=mode if mode != "all-scores" else "exact", all_scores=mode == "all-scores")
+    th = dict(zip(("mt", "st", "et"), map(float, thresholds.split(",")))) if thresholds else {}
+    cfg = ScoreConfig(mode=mode if mode != "all-scores" else "exact", all_scores=mode == "all-scores", **th)
     scorer = Scorer(cfg).load()
     n_max = int(limit)
     decisions = []
+    ms = []
     stages: dict[str, float] = {}
-    crops = 0
+    crops = surrogate = 0
     base = _peak_mb()
     t0 = time.perf_counter()
     with open_log(SHARED / log) as r:
@@ -150,13 +152,16 @@ def case_score(log: str, mode: str, limit: str) -> dict[str, Any]:
         for _, s in scorer.score_stream(frames, lambda fr: fr.decode_bgr()):
             assert not isinstance(s, Exception), s
             decisions.append([s.selected, s.rejected_by])
+            ms.append([s.ms, s.ss, s.es])
             crops += s.crops_scored
+            surrogate += s.crops_surrogate
             for k, v in s.timing_ms.items():
                 stages[k] = stages.get(k, 0.0) + v
     dt = time.perf_counter() - t0
     n = len(decisions)
     return {"frames": n, "seconds": dt, "fps": n / dt, "stage_ms": {k: v / n for k, v in stages.items()},
-            "crops_per_frame": crops / n, "decisions": decisions, "peak_mb": _peak_mb(), "base_mb": base}
+            "crops_per_frame": crops / n, "surrogate_per_frame": surrogate / n, "decisions": decisions, "ms": ms,
+            "peak_mb": _peak_mb(), "base_mb": base}
 
 
 # -- tables ------------------------------------------------------------------------------
@@ -192,26 +197,52 @@ def _fast_ready() -> bool:
         return False
 
 
+def _agree(a: dict[str, Any], b: dict[str, Any]) -> tuple[int, int]:
+    same = sum(x[0] == y[0] for x, y in zip(a["decisions"], b["decisions"]))
+    return same, len(a["decisions"])
+
+
 def bench_score(n: int) -> None:
+    """Paper-literal, exact, all-scores and fast mode on the same frames, in one run, at two
+    threshold settings: the paper's (these small frames all fail ET, so no frame reaches the
+    CNN), and a stress setting where every frame reaches the memorability stage and MT is the
+    median MS of those frames (half the frames lie near the threshold)."""
+    fast = _fast_ready()
     rows = []
     agree_rows = []
     for log in ["euroc_micro_ros2_db3", "nordland_dev_summer.mcap"]:
-        modes = ["paper", "exact", "all-scores"] + (["fast"] if _fast_ready() else [])
-        res = {m: _case("score", log, m, str(n)) for m in modes}
-        p = res["paper"]
-        for m, r in res.items():
-            st = r["stage_ms"]
-            rows.append([log, m, r["frames"], *(f"{st.get(k, 0):.1f}" for k in ("decode", "resize", "staticity", "entropy", "memorability")),
-                         f"{r['crops_per_frame']:.1f}", f"{r['fps']:.3f}", f"{r['fps'] / p['fps']:.1f}x", f"{r['peak_mb']:.0f}"])
-        for m in [m for m in ("exact", "fast") if m in res]:
-            same = sum(a[0] == b[0] for a, b in zip(p["decisions"], res[m]["decisions"]))
-            agree_rows.append([log, m, f"{same}/{len(p['decisions'])}", f"{100.0 * same / len(p['decisions']):.1f} %",
-                               sum(a[0] for a in res[m]["decisions"]), sum(a[0] for a in p["decisions"])])
-    print(f"\n### Scorer ({n} frames per log, measured in one run; ms per frame per stage)\n")
-    print(table(rows, ["log", "mode", "frames", "decode", "resize", "staticity", "entropy", "memorability",
-                       "crops/frame", "frames/s", "vs paper-literal", "peak RSS MB"]))
-    print("\nDecision agreement with the paper-literal pipeline (selected yes/no, paper thresholds):\n")
-    print(table(agree_rows, ["log", "mode", "same decisions", "agreement", "selected", "selected (paper)"]))
+        paper = _case("score", log, "paper", str(n))
+        ms = sorted(float(v[0]) for v in paper["ms"])
+        mt = round(ms[len(ms) // 2], 4)
+        for setting, th in (("paper 0.5/0.6/0.4", ""), (f"stress MT={mt}, ST=ET=0", f"{mt},0,0")):
+            modes = ["exact", "all-scores"] + (["fast"] if fast else [])
+            # the paper-literal pipeline computes every score whatever the thresholds: decide again
+            res = {"paper": paper if not th else
+                   {**paper, "decisions": [[v[0] >= mt, None] for v in paper["ms"]]}}
+            res.update({m: _case("score", log, m, str(n), th) for m in modes})
+            p = res["paper"]
+            for m, r in res.items():
+                st = r["stage_ms"]
+                rows.append([log, setting, "paper-literal" if m == "paper" else m, r["frames"],
+                             *(f"{st.get(k, 0):.1f}" for k in ("decode", "resize", "staticity", "entropy", "memorability")),
+                             f"{r['crops_per_frame']:.1f}", f"{r['surrogate_per_frame']:.1f}", f"{r['fps']:.3f}",
+                             f"{r['fps'] / p['fps']:.1f}x", f"{r['peak_mb']:.0f}"])
+            for m in [m for m in ("exact", "fast") if m in res]:
+                same, tot = _agree(p, res[m])
+                row = [log, setting, m, f"{same}/{tot} ({100.0 * same / tot:.1f} %)"]
+                if m == "fast":
+                    s2, t2 = _agree(res["exact"], res[m])
+                    row.append(f"{s2}/{t2} ({100.0 * s2 / t2:.1f} %)")
+                else:
+                    row.append("-")
+                agree_rows.append(row + [sum(a[0] for a in res[m]["decisions"]), sum(a[0] for a in p["decisions"])])
+    print(f"\n### Scorer ({n} frames per log, every mode measured in one run; ms per frame per stage)\n")
+    print(table(rows, ["log", "thresholds", "mode", "frames", "decode", "resize", "staticity", "entropy",
+                       "memorability", "fp32 crops/frame", "int8 crops/frame", "frames/s", "vs paper-literal",
+                       "peak RSS MB"]))
+    print("\nDecision agreement (selected yes/no):\n")
+    print(table(agree_rows, ["log", "thresholds", "mode", "same as paper-literal", "same as exact", "selected",
+                             "selected (paper-literal)"]))
 
 
 def main() -> int:

@@ -7,6 +7,13 @@ Runs ``memlog evaluate`` (summer = reference, winter = query, the truth file) on
 mode and keep fraction. The reference is scored once with every score (DIR/base/reference.scored.mcap)
 and described once; each run reuses those files through hard links. Prints a Markdown table:
 R@1 and AUC under the map-only protocol, R@1 and AUC under the paper protocol, coverage.
+
+    python benchmarks/selection_table.py --tune
+
+prints the grid the segment-selection defaults were chosen from (after one normal run has
+cached the scores and descriptors in DIR/base): every combination of criterion weights and
+combination rule at each keep fraction, map-only R@1/AUC and paper-protocol R@1, next to
+uniform and random maps of the same size.
 """
 
 from __future__ import annotations
@@ -54,14 +61,67 @@ def row(name: str, r: dict[str, Any]) -> list[str]:
             f(r["auc"], s.get("auc")), f(p["recall@1"], ps.get("recall@1")), f(p["auc"], ps.get("auc"))]
 
 
+def tune(out: Path, fractions: list[float], descriptor: str) -> None:
+    """The segment-selection grid, evaluated in-process on the cached reference files."""
+    import numpy as np
+
+    from memlog.descriptors.parquet import read_descriptors
+    from memlog.evaluate.metrics import evaluate_map_only, evaluate_paper, parse_truth
+    from memlog.localize.match import match
+    from memlog.mapping import choose_frames, score_table
+    from memlog.score import read_scores
+    from memlog.selection import random_masks, uniform_mask
+
+    base = out / "base"
+    recs = next(iter(read_scores(base / "reference.scored.mcap").values()))
+    ref = read_descriptors(base / f"reference.{descriptor}.parquet")
+    q = read_descriptors(base / f"query.{descriptor}.parquet")
+    by_frame = {r["frame_index"]: r for r in recs}
+    table = score_table([by_frame[int(i)] for i in ref.frame_index], "ref")
+    truth_frames = parse_truth(SHARED / "nordland_dev_truth.json", None, None)
+    row_of = {int(f): r for r, f in enumerate(ref.frame_index)}
+    truth = [{row_of[j] for j in truth_frames[int(f)] if j in row_of} for f in q.frame_index]
+    full = match(q.descriptors, ref.descriptors, k=1)
+
+    def score(mask: np.ndarray) -> tuple[float, float, float, float]:
+        mo = evaluate_map_only(match(q.descriptors, ref.descriptors, k=1, ref_mask=mask), truth, mask, ns=(1,))
+        po = evaluate_paper(full, truth, mask, ns=(1,))
+        return mo.recall_at[1], mo.auc, po.recall_at[1], mo.coverage
+
+    def line(fr: float, name: str, vals: tuple[float, ...], frames: int) -> None:
+        print(f"| {fr:g} | {name} | {frames} | " + " | ".join(f"{v:.3f}" for v in vals) + " |")
+        sys.stdout.flush()
+
+    print("| fraction | selection | frames | R@1 (map-only) | AUC (map-only) | R@1 (paper) | coverage |")
+    print("|---|---|---|---|---|---|---|")
+    n = len(ref)
+    weights = [(1, 1, 1), (1, 0, 0), (0, 0, 1), (1, 0, 1), (2, 0, 1), (1, 0, 2)]
+    for fr in fractions:
+        sel = choose_frames(table, "paper", keep_fraction=fr)
+        line(fr, "paper rule (calibrated)", score(sel.keep), int(sel.keep.sum()))
+        k = 0
+        for w in weights:
+            for comb in ("rank", "geometric"):
+                sel = choose_frames(table, "segment", keep_fraction=fr, weights=w, combine=comb)
+                k = int(sel.keep.sum())
+                line(fr, f"segment w(ms,ss,es)={w} {comb}", score(sel.keep), k)
+        line(fr, "uniform", score(uniform_mask(n, k)), k)
+        rand = np.array([score(m) for m in random_masks(n, k, range(20))])
+        line(fr, "random (mean of 20)", tuple(rand.mean(axis=0)), k)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=str(ROOT / "out" / "nordland"))
     ap.add_argument("--fractions", type=float, nargs="+", default=[0.25, 0.5, 0.75])
     ap.add_argument("--descriptor", default="thumbnail")
     ap.add_argument("--segment", default="{}", help="JSON of extra segment settings to try")
+    ap.add_argument("--tune", action="store_true", help="print the segment-selection grid (needs one normal run first)")
     a = ap.parse_args()
     out = Path(a.out)
+    if a.tune:
+        tune(out, a.fractions, a.descriptor)
+        return 0
     seg_extra = json.loads(a.segment)
     print("| fraction | map | frames | coverage | R@1 (map-only) | AUC (map-only) | R@1 (paper) | AUC (paper) |")
     print("|---|---|---|---|---|---|---|---|")

@@ -31,7 +31,8 @@ FRAME_SCORES: dict[str, Any] = {
         "log_time": {"type": "integer", "description": "log time of the frame message, ns"},
         "topic": {"type": "string"},
         "frame_index": {"type": "integer", "minimum": 0, "description": "position of the message on its topic"},
-        "ms": {**_NUM_OR_NULL, "description": "memorability score (a bound when ms_exact is false)"},
+        "ms": {**_NUM_OR_NULL, "description": "memorability score; when ms_exact is false, a bound (exact mode "
+               "stopped the crop loop early) or the int8 surrogate's estimate (fast mode, crops_surrogate > 0)"},
         "ms_low": _NUM_OR_NULL,
         "ms_high": _NUM_OR_NULL,
         "ms_exact": {"type": "boolean", "description": "false when the crop loop stopped early and MS is only bounded"},
@@ -42,7 +43,9 @@ FRAME_SCORES: dict[str, Any] = {
             "type": ["array", "null"],
             "items": {"type": "array", "items": _NUM_OR_NULL},
         },
-        "crops_scored": {"type": "integer", "minimum": 0},
+        "crops_scored": {"type": "integer", "minimum": 0, "description": "crops run through the exact (fp32) model"},
+        "crops_surrogate": {"type": "integer", "minimum": 0,
+                            "description": "crops run through the fast-mode int8 surrogate (0 outside fast mode)"},
         "selected": {"type": "boolean"},
         "rejected_by": {"enum": [None, "staticity", "entropy", "memorability", "undecodable"]},
         "thresholds": {

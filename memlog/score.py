@@ -126,7 +126,8 @@ def scores_message(frame: Frame, s: FrameScore | None, config: ScoreConfig, erro
     }
     if s is None:
         return {**base, "ms": None, "ss": None, "es": None, "selected": False, "rejected_by": "undecodable",
-                "memorability": None, "ms_exact": True, "crops_scored": 0, "detections": 0, "timing_ms": {},
+                "memorability": None, "ms_exact": True, "crops_scored": 0, "crops_surrogate": 0, "detections": 0,
+                "timing_ms": {},
                 "error": error}
     return {**base, **s.to_json(), "error": None}
 

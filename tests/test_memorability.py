@@ -41,6 +41,7 @@ from memlog.models.resmem import (
 )
 from memlog.models.state_dict import load_state_dict
 from memlog.scoring.memorability import (
+    FastMemorability,
     FRAME,
     Memorability,
     crop_weights,
@@ -500,3 +501,78 @@ def test_static_map_and_matrix_errors(scorer: Memorability, frames: list[Array])
     assert memorability_score(m, np.zeros((FRAME, FRAME))) == 0.0
     res = scorer(frames[0], np.zeros((FRAME, FRAME), np.uint8), threshold=0.5)
     assert res.n_scored == 0 and res.passed is False and res.ms_high == 0.0
+
+
+class _OffsetSession:
+    """A surrogate with a known error: the real model's scores plus a fixed offset per crop."""
+
+    def __init__(self, inner: _CachingSession, offsets: Array) -> None:
+        self.inner = inner
+        self.offsets = offsets  # by crop content
+        self.keys: dict[bytes, int] = {}
+
+    def run(self, names: list[str], feeds: dict[str, Array]) -> list[Array]:
+        x = feeds[INPUT_NAME]
+        out = self.inner.run(names, feeds)[0].reshape(-1)
+        off = np.array([self.offsets[self.keys.setdefault(c.tobytes(), len(self.keys)) % len(self.offsets)]
+                        for c in x], np.float32)
+        return [np.clip(out + off, 0.0, 1.0).reshape(-1, 1)]
+
+
+def _with_session(session: Any, batch: int) -> Memorability:
+    m = Memorability.__new__(Memorability)
+    m.batch = batch
+    m.session = session
+    return m
+
+
+def test_prior_bounds_decide_like_full_scoring(scorer: Memorability, frames: list[Array]) -> None:
+    """Per-crop bounds that hold give the full-scoring decision, with fewer crops than [0, 1]."""
+    cached = _CachingSession(scorer.session)
+    exact = _with_session(cached, 2)
+    frame = frames[1]
+    full_m = memorability_matrix(cached, crops_from_frame(frame)).reshape(-1).astype(np.float64)
+    rng = np.random.default_rng(0)
+    for s in _iter_static_maps():
+        ms = memorability_score(full_m.reshape(5, 5), s)
+        for eps in (0.01, 0.05, 0.2):
+            lo = np.clip(full_m - rng.uniform(0, eps, 25), 0, 1)
+            hi = np.clip(full_m + rng.uniform(0, eps, 25), 0, 1)
+            for t in (ms - 0.03, ms - 2e-3, ms + 2e-3, ms + 0.03):
+                with_prior = exact(frame, s, threshold=t, prior=(lo, hi))
+                plain = exact(frame, s, threshold=t)
+                assert with_prior.passed == plain.passed == (ms >= t), (eps, t, ms)
+                assert with_prior.ms_low - 1e-9 <= ms <= with_prior.ms_high + 1e-9
+                assert with_prior.n_scored <= plain.n_scored
+    with pytest.raises(ScoringError, match="25 values"):
+        exact(frame, None, threshold=0.5, prior=(np.zeros(24), np.ones(24)))
+    with pytest.raises(ScoringError, match="lo <= hi"):
+        exact(frame, None, threshold=0.5, prior=(np.ones(25), np.zeros(25)))
+
+
+def test_fast_mode_agrees_when_surrogate_within_bound(scorer: Memorability, frames: list[Array]) -> None:
+    """FastMemorability with a surrogate whose error is <= epsilon makes exact mode's decision
+    at every threshold, scoring with the exact model only frames near the threshold."""
+    cached = _CachingSession(scorer.session)
+    eps = 0.03
+    offsets = np.random.default_rng(1).uniform(-eps, eps, 25).astype(np.float32)
+    surrogate = _with_session(_OffsetSession(cached, offsets), 25)
+    fast = FastMemorability(surrogate, _with_session(cached, 3), eps)
+    frame = frames[4]
+    full_m = memorability_matrix(cached, crops_from_frame(frame))
+    for s in _iter_static_maps():
+        ms = memorability_score(full_m, s)
+        ss = 1.0 if s is None else float(np.asarray(s, np.float64).mean())
+        est = fast(frame, s)  # no threshold: the surrogate's estimate and its bound
+        assert not est.exact and est.n_scored == 0 and est.n_surrogate == int((crop_weights(s) > 0).sum())
+        assert est.ms_low - 1e-9 <= ms <= est.ms_high + 1e-9
+        assert abs(est.ms - ms) <= eps * ss + 1e-6
+        for t in (ms - 0.1, ms - 0.01, ms - 1e-3, ms + 1e-3, ms + 0.01, ms + 0.1):
+            r = fast(frame, s, threshold=t)
+            assert r.passed == (ms >= t), (t, ms, r)
+            assert r.ms_low - 1e-9 <= ms <= r.ms_high + 1e-9
+            assert r.ms is not None and r.ms_low - 1e-12 <= r.ms <= r.ms_high + 1e-12
+            if abs(ms - t) > 2 * eps * ss:  # settled by the surrogate alone
+                assert r.n_scored == 0
+    with pytest.raises(ScoringError, match="epsilon"):
+        FastMemorability(surrogate, surrogate, 1.5)

@@ -56,10 +56,13 @@ __all__ = [
     "quantize_resmem",
     "prepare_resmem_int8",
     "resmem_int8_path",
+    "resmem_int8_bounds",
+    "validation_crops",
+    "crop_error",
 ]
 
 #: Bump when the quantisation settings or the calibration set change: cached models are rebuilt.
-QUANTIZER_VERSION = "2"
+QUANTIZER_VERSION = "3"
 
 #: scikit-image sample photographs used for calibration, in order (bundled with the wheel).
 CALIBRATION_IMAGES: tuple[str, ...] = (
@@ -84,18 +87,20 @@ CALIBRATION_IMAGES: tuple[str, ...] = (
 #: Default number of calibration images (25 crops each).
 DEFAULT_N_IMAGES = 12
 
-#: Quantisation settings (recorded in the sidecar). Chosen by measurement on a 2-core AVX2 CPU
-#: (no VNNI): U8S8 is the only int8 pair with a fast kernel there (S8S8 ran at fp32 speed, U8U8
-#: at 1.3x); ``reduce_range`` (7-bit weights) avoids the int16 saturation of AVX2's u8*s8
-#: multiply-add (8-bit weights: max error 0.25 instead of 0.08); Percentile calibration
-#: (99.999) clips rare activation outliers that MinMax stretched the ranges for (mean crop
-#: error 0.044 -> 0.016).
+#: Quantisation settings (recorded in the sidecar). Chosen by measurement on 2-core CPUs: U8S8
+#: is the only int8 pair with a fast kernel on AVX2 (S8S8 ran at fp32 speed, U8U8 at 1.3x).
+#: ``reduce_range`` "auto": 7-bit weights on CPUs without VNNI, where they avoid the int16
+#: saturation of AVX2's u8*s8 multiply-add (8-bit weights there: max crop error 0.25 instead
+#: of 0.08), full 8-bit weights where VNNI accumulates in int32 (max crop error 0.046; 3x
+#: faster than fp32 on an AVX-512 VNNI EPYC). The model is built on the machine that runs it,
+#: and the sidecar records what was used. Percentile calibration (99.999) clips rare
+#: activation outliers that MinMax stretched the ranges for (mean crop error 0.044 -> 0.016).
 SETTINGS: dict[str, Any] = {
     "format": "QDQ",
     "activation_type": "QUInt8",
     "weight_type": "QInt8",
     "per_channel": True,
-    "reduce_range": True,
+    "reduce_range": "auto",
     "calibrate_method": "Percentile",
     "percentile": 99.999,
     "quantized": "ResNet-152 trunk: stem conv, maxpool and all bottleneck convs/adds (features.conv1 .. features.layer4)",
@@ -103,12 +108,31 @@ SETTINGS: dict[str, Any] = {
     "features.fc, fc6..fc12, sigmoid",
     "pre_process": "onnxruntime.quantization.quant_pre_process(skip_symbolic_shape=True)",
     "calibration_batch": 5,
+    "bound_factor": 1.5,
 }
 
 _FRAME = CROP * 5
 _CAL_BATCH = int(SETTINGS["calibration_batch"])
 
 F32 = npt.NDArray[np.float32]
+
+
+def cpu_has_vnni() -> bool:
+    """Whether this CPU has VNNI int8 dot products (AVX-512 VNNI, AVX-VNNI or AMX), from /proc/cpuinfo."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    flags = set()
+    for line in text.splitlines():
+        if line.startswith(("flags", "Features")):
+            flags.update(line.split(":", 1)[-1].split())
+    return bool(flags & {"avx512_vnni", "avx_vnni", "amx_int8"})
+
+
+def _reduce_range() -> bool:
+    rr = SETTINGS["reduce_range"]
+    return (not cpu_has_vnni()) if rr == "auto" else bool(rr)
 
 
 def _int8_target() -> Path:
@@ -154,6 +178,57 @@ def calibration_crops(n_images: int = DEFAULT_N_IMAGES) -> F32:
         frame = cv2.resize(_load_bgr(name), (_FRAME, _FRAME), interpolation=cv2.INTER_LINEAR)
         parts.append(crops_from_frame(frame))
     return np.ascontiguousarray(np.concatenate(parts, axis=0), dtype=np.float32)
+
+
+def validation_crops(n_calibration: int = DEFAULT_N_IMAGES, widths: tuple[int, ...] = (160, 64)) -> F32:
+    """Held-out frames for the surrogate's error bounds, 25 crops each.
+
+    The sample photos not used for calibration, at full resolution and as low-resolution
+    cameras give them, plus the calibration photos at low resolution only (crops that were
+    not calibrated on): each shrunk to every width of ``widths`` pixels with ``INTER_AREA``
+    first, like the 376 x 240 EuRoC or 64 x 32 Nordland frames memlog upscales to 1135 x 1135.
+    """
+    import cv2
+
+    from memlog.scoring.memorability import crops_from_frame
+
+    if not 1 <= n_calibration < len(CALIBRATION_IMAGES):
+        raise ModelError(f"n_calibration must be in 1..{len(CALIBRATION_IMAGES) - 1}, got {n_calibration}")
+    parts = []
+    for i, name in enumerate(CALIBRATION_IMAGES):
+        img = _load_bgr(name)
+        h, w = img.shape[:2]
+        versions: list[npt.NDArray[Any]] = [] if i < n_calibration else [img]
+        versions += [cv2.resize(img, (wd, max(1, round(h * wd / w))), interpolation=cv2.INTER_AREA) for wd in widths]
+        for src in versions:
+            frame = cv2.resize(src, (_FRAME, _FRAME), interpolation=cv2.INTER_LINEAR)
+            parts.append(crops_from_frame(frame))
+    return np.ascontiguousarray(np.concatenate(parts, axis=0), dtype=np.float32)
+
+
+def crop_error(fp32_path: Path, int8_path: Path, crops: F32, batch: int = 25) -> dict[str, float]:
+    """Errors of the int8 model against fp32 over ``crops`` (frames of 25 crops each):
+    per-crop |int8 - fp32| (``max``, ``p99``, ``mean``) and per-frame |MS(int8) - MS(fp32)|
+    with every pixel static (``frame_max``, ``frame_mean``); ``n`` crops, ``frames``."""
+    import onnxruntime as ort
+
+    from memlog.scoring.memorability import crop_weights
+
+    if len(crops) == 0 or len(crops) % 25:
+        raise ModelError(f"validation crops must be whole frames of 25 crops, got {len(crops)}")
+    outs = []
+    for path in (fp32_path, int8_path):
+        sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        outs.append(np.concatenate([
+            np.asarray(sess.run([OUTPUT_NAME], {INPUT_NAME: crops[i:i + batch]})[0]).reshape(-1)
+            for i in range(0, len(crops), batch)
+        ]).astype(np.float64))
+    diff = outs[1] - outs[0]
+    d = np.abs(diff)
+    frame = np.abs(diff.reshape(-1, 25) @ crop_weights(None).reshape(-1))
+    return {"max": float(d.max()), "p99": float(np.percentile(d, 99)), "mean": float(d.mean()),
+            "frame_max": float(frame.max()), "frame_mean": float(frame.mean()),
+            "n": int(d.size), "frames": int(frame.size)}
 
 
 class _CropReader:
@@ -218,12 +293,16 @@ def quantize_resmem(
     crops: F32,
     *,
     calibration: dict[str, Any] | None = None,
+    validation: F32 | None = None,
     quiet: bool = True,
 ) -> Path:
     """Statically quantise the ResMem ONNX model at ``fp32_path`` to ``out_path`` (+ JSON sidecar).
 
     ``crops`` [N,3,227,227] float32 are the calibration inputs; ``calibration`` (JSON-able)
-    describes them in the sidecar. The model and its sidecar ``out_path.with_suffix('.json')``
+    describes them in the sidecar. ``validation`` (held-out crops, default
+    :func:`validation_crops`) measures the error of the result: fast mode's per-crop bound
+    ``epsilon`` and per-frame bound ``delta`` are ``SETTINGS["bound_factor"]`` times the
+    largest crop and frame errors seen. The model and its sidecar ``out_path.with_suffix('.json')``
     are written atomically; intermediate files live in a temporary directory beside
     ``out_path``. Returns ``out_path``.
     """
@@ -251,6 +330,7 @@ def quantize_resmem(
         quant_pre_process(str(fp32_path), str(pre), skip_symbolic_shape=True)
         exclude = _nodes_to_exclude(pre)
         qtmp = tmp / "int8.onnx"
+        reduce_range = _reduce_range()
         reader = _CropReader(np.ascontiguousarray(crops), _CAL_BATCH)
         try:
             # onnxruntime's histogram calibrators print a line per batch on stdout
@@ -261,7 +341,7 @@ def quantize_resmem(
                     reader,
                     quant_format=QuantFormat.QDQ,
                     per_channel=bool(SETTINGS["per_channel"]),
-                    reduce_range=bool(SETTINGS["reduce_range"]),
+                    reduce_range=reduce_range,
                     activation_type=QuantType.QUInt8,
                     weight_type=QuantType.QInt8,
                     nodes_to_exclude=exclude,
@@ -276,6 +356,8 @@ def quantize_resmem(
                 )
         except Exception as exc:  # onnxruntime raises many exception types
             raise ModelError(f"int8 quantisation of {fp32_path} failed: {exc}") from exc
+        val = validation_crops() if validation is None else validation
+        err = crop_error(fp32_path, qtmp, val)
         data = qtmp.read_bytes()
         write_bytes_atomic(out_path, data)
     import onnxruntime
@@ -289,12 +371,19 @@ def quantize_resmem(
         "int8_bytes": len(data),
         "onnxruntime_version": onnxruntime.__version__,
         "settings": SETTINGS,
+        "reduce_range_used": reduce_range,
+        "cpu_vnni": cpu_has_vnni(),
         "n_nodes_excluded": len(exclude),
         "calibration": {
             **(calibration or {}),
             "n_crops": len(crops),
             "crops_sha256": _crops_sha256(crops),
         },
+        "validation": {"n_crops": len(val), "crops_sha256": _crops_sha256(val),
+                       "source": "validation_crops()" if validation is None else "caller"},
+        "crop_error": err,
+        "epsilon": min(1.0, float(SETTINGS["bound_factor"]) * err["max"]),
+        "delta": min(1.0, float(SETTINGS["bound_factor"]) * err["frame_max"]),
         "seconds": round(time.perf_counter() - t0, 1),
         "inputs": {INPUT_NAME: ["N", 3, CROP, CROP]},
         "outputs": {OUTPUT_NAME: ["N", 1], FEATURES_NAME: ["N", 2048]},
@@ -331,6 +420,7 @@ def _int8_ok(path: Path) -> bool:
             and side.get("quantizer_version") == QUANTIZER_VERSION
             and side.get("source_onnx_sha256") == src
             and side.get("int8_bytes") == path.stat().st_size
+            and side.get("cpu_vnni") == cpu_has_vnni()  # built for this kind of CPU
         )
     except (OSError, ValueError):
         return False
@@ -342,6 +432,20 @@ def resmem_int8_path() -> Path:
     if not out.is_file() or not _int8_ok(out):
         raise ModelError(f"fast-mode model not prepared ({out}): run `memlog models prepare resmem-int8`")
     return out
+
+
+def resmem_int8_bounds(path: Path | None = None) -> tuple[float, float]:
+    """Fast mode's error bounds of the int8 model, (per-crop ``epsilon``, per-frame ``delta``)."""
+    p = resmem_int8_path() if path is None else Path(path)
+    try:
+        side = json.loads(p.with_suffix(".json").read_text())
+        bounds = (side["epsilon"], side["delta"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ModelError(f"{p}: sidecar has no error bounds ({exc}); run `memlog models prepare resmem-int8 --force`") from None
+    for b in bounds:
+        if not isinstance(b, (int, float)) or not 0.0 <= float(b) <= 1.0:
+            raise ModelError(f"{p}: invalid error bound {b!r} in its sidecar")
+    return float(bounds[0]), float(bounds[1])
 
 
 def calibration_description(n_images: int = DEFAULT_N_IMAGES) -> dict[str, Any]:

@@ -156,7 +156,8 @@ def model_hashes(config: Any = None) -> dict[str, str]:
     """sha256 of the models a scoring run with ``config`` uses (recorded in outputs)."""
     mode = getattr(config, "mode", "exact")
     out: dict[str, str] = {}
-    for info in (_resmem_int8() if mode == "fast" else _resmem(), _detector()):
+    # fast mode runs the int8 surrogate and, where it does not settle a frame, the fp32 model
+    for info in ((_resmem(), _resmem_int8()) if mode == "fast" else (_resmem(),)) + (_detector(),):
         if info.sha256:
             out[info.name] = info.sha256
     return out

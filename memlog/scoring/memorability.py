@@ -14,7 +14,7 @@ scored.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -37,6 +37,7 @@ __all__ = [
     "crop_weights",
     "MemorabilityResult",
     "Memorability",
+    "FastMemorability",
 ]
 
 FRAME = 1135
@@ -94,6 +95,18 @@ def memorability_matrix(session: ort.InferenceSession, crops: F32, *, batch: int
     return scores.reshape(GRID, GRID)
 
 
+def _check_prior(prior: tuple[npt.NDArray[Any], npt.NDArray[Any]] | None) -> tuple[F64, F64]:
+    """Per-crop bounds (lo, hi) as two flat float64 arrays of 25 (default: 0 and 1)."""
+    if prior is None:
+        return np.zeros(GRID * GRID), np.ones(GRID * GRID)
+    lo, hi = (np.asarray(p, dtype=np.float64).reshape(-1) for p in prior)
+    if lo.shape != (GRID * GRID,) or hi.shape != (GRID * GRID,):
+        raise ScoringError(f"prior bounds must hold {GRID * GRID} values each, got {lo.shape} and {hi.shape}")
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi)):
+        raise ScoringError("prior bounds must be finite with lo <= hi")
+    return lo, hi
+
+
 def _check_matrix(m: npt.NDArray[Any]) -> None:
     if not isinstance(m, np.ndarray) or m.shape != (GRID, GRID):
         raise ScoringError(f"M must be a {GRID}x{GRID} array, got {getattr(m, 'shape', None)}")
@@ -149,8 +162,10 @@ class MemorabilityResult:
     """Outcome of scoring one frame.
 
     ``m``: 5 x 5 scores, NaN for crops that were not scored. ``exact``: every crop of non-zero
-    weight was scored, so ``ms`` is MS and ``ms_low == ms == ms_high``; otherwise ``ms`` is None
-    and MS lies in [``ms_low``, ``ms_high``]. ``passed``: MS >= threshold (None without one).
+    weight was scored, so ``ms`` is MS and ``ms_low == ms == ms_high``; otherwise MS lies in
+    [``ms_low``, ``ms_high``] and ``ms`` is None, or (fast mode) the surrogate's estimate.
+    ``passed``: MS >= threshold (None without one). ``n_scored``: crops run through the exact
+    model; ``n_surrogate``: crops run through the fast surrogate (fast mode only).
     """
 
     m: F32
@@ -160,6 +175,7 @@ class MemorabilityResult:
     exact: bool
     n_scored: int
     passed: bool | None
+    n_surrogate: int = 0
 
 
 class Memorability:
@@ -192,30 +208,45 @@ class Memorability:
         static_map: npt.NDArray[Any] | None = None,
         threshold: float | None = None,
         batch: int | None = None,
+        *,
+        prior: tuple[npt.NDArray[Any], npt.NDArray[Any]] | None = None,
+        crops: F32 | None = None,
     ) -> MemorabilityResult:
-        """Score a frame; with ``threshold`` stop as soon as MS >= threshold is decided."""
+        """Score a frame; with ``threshold`` stop as soon as MS >= threshold is decided.
+
+        ``prior``: per-crop bounds (lo, hi), 25 values each, known to contain the crop scores
+        (default 0 and 1, the range of ResMem's sigmoid). Crops are scored in order of
+        decreasing weight x (hi - lo), so the bound on MS shrinks fastest. ``crops``: the
+        frame's :func:`crops_from_frame`, when the caller already has them.
+        """
         bs = self.batch if batch is None else batch
         if bs < 1:
             raise ScoringError(f"batch must be >= 1, got {bs}")
         if threshold is not None and not np.isfinite(threshold):
             raise ScoringError(f"threshold must be finite, got {threshold}")
-        crops = crops_from_frame(bgr1135)
+        if crops is None:
+            crops = crops_from_frame(bgr1135)
+        else:
+            _check_crops(crops)
         w = crop_weights(static_map).reshape(-1)
-        order = [int(k) for k in np.argsort(-w, kind="stable") if w[k] > 0]
+        lo, hi = _check_prior(prior)
+        order = [int(k) for k in np.argsort(-(w * (hi - lo)), kind="stable") if w[k] > 0]
         m = np.full(GRID * GRID, np.nan, dtype=np.float32)
         done = 0.0  # sum of w_k M_k over scored crops
-        left = float(w[order].sum())  # weight of unscored crops
+        left_lo = float(np.dot(w[order], lo[order]))  # bounds on the unscored crops' share
+        left_hi = float(np.dot(w[order], hi[order]))
         n = 0
         while n < len(order):
             if threshold is not None:
-                if done >= threshold + DECISION_MARGIN:
-                    return self._result(m, done, done + max(left, 0.0), n, True)
-                if done + left < threshold - DECISION_MARGIN:
-                    return self._result(m, done, done + max(left, 0.0), n, False)
+                if done + left_lo >= threshold + DECISION_MARGIN:
+                    return self._result(m, done + left_lo, done + left_hi, n, True)
+                if done + left_hi < threshold - DECISION_MARGIN:
+                    return self._result(m, done + left_lo, done + left_hi, n, False)
             idx = order[n:n + bs]
             m[idx] = _run(self.session, crops[idx])
             done += float(np.dot(w[idx], m[idx].astype(np.float64)))
-            left -= float(w[idx].sum())
+            left_lo -= float(np.dot(w[idx], lo[idx]))
+            left_hi -= float(np.dot(w[idx], hi[idx]))
             n += len(idx)
         full = np.where(np.isnan(m), 0.0, m).reshape(GRID, GRID)
         ms = memorability_score(full, static_map)
@@ -225,3 +256,69 @@ class Memorability:
     @staticmethod
     def _result(m: F32, low: float, high: float, n: int, passed: bool) -> MemorabilityResult:
         return MemorabilityResult(m.reshape(GRID, GRID), None, low, high, False, n, passed)
+
+
+class FastMemorability:
+    """Fast mode: an int8 surrogate of ResMem, refined with the exact model only where needed.
+
+    Every crop of non-zero weight is scored by the surrogate (one batch), giving an estimate of
+    MS. Two error bounds, both measured when the surrogate was built (see
+    :mod:`memlog.models.quantize`), decide what happens next:
+
+    * ``delta``, the frame-level bound on |MS(surrogate) - MS|: when the estimate is further
+      than ``delta`` from the threshold, the surrogate's decision stands (no exact crop);
+    * ``epsilon``, the per-crop bound: otherwise the exact model scores crops (the most
+      uncertain first) with every unscored crop known to lie within ``epsilon`` of its
+      surrogate score, until ``MS >= threshold`` is decided — as exact mode would decide it.
+
+    Without a threshold the surrogate's MS is the result (``exact=False``, bounds +-``delta``).
+    """
+
+    def __init__(self, surrogate: Path | Memorability, exact: Memorability, epsilon: float,
+                 delta: float | None = None, *, threads: int | None = None) -> None:
+        """``surrogate``: the int8 ONNX file (or an open :class:`Memorability`); ``exact``: the
+        fp32 model; ``epsilon``/``delta``: the surrogate's per-crop and per-frame error
+        bounds (``delta`` defaults to ``epsilon``, which bounds the frame error too)."""
+        delta = epsilon if delta is None else delta
+        for name, v in (("epsilon", epsilon), ("delta", delta)):
+            if not (np.isfinite(v) and 0.0 <= v <= 1.0):
+                raise ScoringError(f"{name} must be within [0, 1], got {v}")
+        self.surrogate = (surrogate if isinstance(surrogate, Memorability)
+                          else Memorability(surrogate, threads=threads, batch=GRID * GRID))
+        self.exact = exact
+        self.epsilon = float(epsilon)
+        self.delta = float(delta)
+        self.batch = exact.batch
+
+    def __call__(
+        self,
+        bgr1135: npt.NDArray[Any],
+        static_map: npt.NDArray[Any] | None = None,
+        threshold: float | None = None,
+        batch: int | None = None,
+    ) -> MemorabilityResult:
+        """Score a frame like :meth:`Memorability.__call__` (same result fields)."""
+        if threshold is not None and not np.isfinite(threshold):
+            raise ScoringError(f"threshold must be finite, got {threshold}")
+        crops = crops_from_frame(bgr1135)
+        w = crop_weights(static_map).reshape(-1)
+        todo = np.flatnonzero(w > 0)
+        est = np.full(GRID * GRID, np.nan, dtype=np.float32)
+        if todo.size:
+            est[todo] = self.surrogate.score_crops(crops[todo])
+        filled = np.where(np.isnan(est), 0.0, est).astype(np.float64)
+        ms_est = float(np.dot(w, filled))
+        ss = float(w.sum())
+        low, high = max(0.0, ms_est - self.delta), min(ss, ms_est + self.delta)
+        n_sur = int(todo.size)
+        if threshold is None or low >= threshold + DECISION_MARGIN or high < threshold - DECISION_MARGIN:
+            passed = None if threshold is None else low >= threshold + DECISION_MARGIN
+            return MemorabilityResult(est.reshape(GRID, GRID), ms_est, low, high, False, 0, passed, n_sur)
+        lo = np.clip(filled - self.epsilon, 0.0, 1.0)
+        hi = np.clip(filled + self.epsilon, 0.0, 1.0)
+        r = self.exact(bgr1135, static_map, threshold, batch, prior=(lo, hi), crops=crops)
+        if r.exact:
+            return replace(r, n_surrogate=n_sur)
+        m = np.where(np.isnan(r.m.reshape(-1)), est, r.m.reshape(-1))
+        ms = float(np.clip(np.dot(w, np.where(np.isnan(m), 0.0, m)), r.ms_low, r.ms_high))
+        return replace(r, m=m.reshape(GRID, GRID).astype(np.float32), ms=ms, n_surrogate=n_sur)

@@ -11,7 +11,9 @@ Modes (``ScoreConfig.mode``):
   per frame, stages skipped once a frame fails, and the crop loop of the memorability stage
   stops as soon as MS >= MT is decided (MS is then recorded as a bound, ``ms_exact=False``).
 * ``paper``: the literal pipeline (scikit-image entropy, every crop, every score) for reference.
-* ``fast``: ``exact`` with the int8 memorability model.
+* ``fast``: ``exact`` with an int8 surrogate of the memorability model in front: every crop is
+  scored by the surrogate, and the exact model runs only on the crops needed to settle frames
+  whose estimated MS is within the surrogate's measured error of MT (:class:`FastMemorability`).
 
 ``all_scores=True`` computes every score of every frame (for sweeps and reports).
 """
@@ -81,6 +83,7 @@ class FrameScore:
     ms_high: float | None = None
     ms_exact: bool = True
     crops_scored: int = 0
+    crops_surrogate: int = 0
     detections: list[Any] = field(default_factory=list)
     timing_ms: dict[str, float] = field(default_factory=dict)
     width: int = 0
@@ -95,6 +98,7 @@ class FrameScore:
         return {
             "ms": r(self.ms), "ms_low": r(self.ms_low), "ms_high": r(self.ms_high), "ms_exact": self.ms_exact,
             "ss": r(self.ss), "es": r(self.es), "memorability": m, "crops_scored": self.crops_scored,
+            "crops_surrogate": self.crops_surrogate,
             "selected": self.selected, "rejected_by": self.rejected_by,
             "detections": len(self.detections),
             "timing_ms": {k: round(v, 3) for k, v in self.timing_ms.items()},
@@ -133,12 +137,16 @@ class Scorer:
             from memlog.scoring.memorability import Memorability
 
             threads = self.config.threads or None
-            path = self._mem_path
-            if path is None and self.config.mode == "fast":
-                from memlog.models.registry import memorability_model_path
+            exact = Memorability(self._mem_path, threads=threads, batch=self.config.crop_batch)
+            if self.config.mode == "fast":
+                from memlog.models.quantize import resmem_int8_bounds, resmem_int8_path
+                from memlog.scoring.memorability import FastMemorability
 
-                path = memorability_model_path("fast")
-            self._mem = Memorability(path, threads=threads, batch=self.config.crop_batch)
+                int8 = resmem_int8_path()
+                eps, delta = resmem_int8_bounds(int8)
+                self._mem = FastMemorability(int8, exact, eps, delta, threads=threads)
+            else:
+                self._mem = exact
         return self._mem
 
     def load(self) -> "Scorer":
@@ -205,9 +213,13 @@ class Scorer:
             scale = (1.0 / cheap.ss if cheap.ss > 0 else 0.0) if c.normalize == "static" else 1.0
             res.memorability = r.m
             res.crops_scored = r.n_scored
+            res.crops_surrogate = r.n_surrogate
             res.ms_exact = bool(r.exact)
             res.ms_low, res.ms_high = r.ms_low * scale, r.ms_high * scale
-            res.ms = (r.ms * scale) if r.exact else (res.ms_low if r.passed else res.ms_high)
+            if r.ms is not None:  # exact value, or fast mode's estimate
+                res.ms = r.ms * scale
+            else:  # exact mode stopped early: the bound that decided
+                res.ms = res.ms_low if r.passed else res.ms_high
             passed = r.passed if r.passed is not None else (res.ms >= c.mt)
             if res.rejected_by is None and not passed:
                 res.rejected_by = "memorability"
