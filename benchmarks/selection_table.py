@@ -105,6 +105,9 @@ def tune(out: Path, fractions: list[float], descriptor: str) -> None:
                 sel = choose_frames(table, "segment", keep_fraction=fr, weights=w, combine=comb)
                 k = int(sel.keep.sum())
                 line(fr, f"segment w(ms,ss,es)={w} {comb}", score(sel.keep), k)
+        for comb in ("rank", "geometric"):  # the minimum scores: dark frames (tunnels) dropped or not
+            sel = choose_frames(table, "segment", keep_fraction=fr, combine=comb, min_ms=0.05, min_es=0.05)
+            line(fr, f"segment {comb}, min_ms = min_es = 0.05", score(sel.keep), int(sel.keep.sum()))
         line(fr, "uniform", score(uniform_mask(n, k)), k)
         rand = np.array([score(m) for m in random_masks(n, k, range(20))])
         line(fr, "random (mean of 20)", tuple(rand.mean(axis=0)), k)

@@ -57,10 +57,13 @@ def _add_stream_flags(p: argparse.ArgumentParser) -> None:
 
 def _add_selection_flags(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("frame selection")
-    g.add_argument("--select", choices=["paper", "segment"], default="paper",
-                   help="paper: keep frames passing MT/ST/ET; segment: best frame per place segment")
+    g.add_argument("--select", choices=["paper", "segment"], default="segment",
+                   help="segment (default; won on the shared Nordland data): the best frame of each place segment "
+                        "by the three scores, so no stretch of the drive is lost; paper: keep the frames passing "
+                        "MT/ST/ET (fixed, or calibrated with --keep-fraction)")
     g.add_argument("--keep-fraction", type=float,
-                   help="pick thresholds (paper) or segment size (segment) so about this fraction is kept")
+                   help="pick thresholds (paper) or segment size (segment) so about this fraction is kept "
+                        "(segment default: 0.25)")
     g.add_argument("--spacing-m", type=float, help="segment: one frame per this many metres travelled")
     g.add_argument("--spacing-s", type=float, help="segment: one frame per this many seconds")
     g.add_argument("--segment-by", choices=["auto", "distance", "time", "count", "view"], help="segment boundaries")
@@ -80,10 +83,9 @@ def segment_from_args(args: argparse.Namespace) -> dict[str, Any] | None:
     if seg and args.select != "segment":
         print("memlog: error: --spacing-m/--spacing-s/--segment-by need --select segment", file=sys.stderr)
         return None
-    if args.select == "segment" and args.keep_fraction is None and not seg:
-        print("memlog: error: --select segment needs --keep-fraction or a spacing (--spacing-m / --spacing-s)",
-              file=sys.stderr)
-        return None
+    if args.select == "segment" and any(getattr(args, k, None) is not None for k in ("mt", "st", "et")):
+        info("memlog: note: --select segment keeps the best frame of each place segment; --mt/--st/--et only set "
+             "the paper rule recorded with each frame's scores (use --select paper to select by them)")
     return seg
 
 

@@ -239,7 +239,7 @@ def make_map(
     *,
     scores: str | os.PathLike[str] | dict[str, list[dict[str, Any]]] | None = None,
     topics: list[str] | None = None,
-    mode: str = "paper",
+    mode: str = "segment",
     keep_fraction: float | None = None,
     dedup_distance: float | None = None,
     keep_topics: Sequence[str] = (),

@@ -47,7 +47,8 @@ def test_map_with_fixed_thresholds(all_scored: Path, tmp_path: Path) -> None:
     want = [r["frame_index"] for r in recs if _passes(r, **th)]
     assert 0 < len(want) < len(recs), "fixture should keep some frames and drop others at these thresholds"
     out = tmp_path / "map.mcap"
-    res = make_map(DEMO, out, ScoreConfig(**th), scores=all_scored, topics=[COMP], keep_topics=["/gps/fix"])
+    res = make_map(DEMO, out, ScoreConfig(**th), scores=all_scored, topics=[COMP], keep_topics=["/gps/fix"],
+                   mode="paper")
     assert res.frames_kept == len(want) and res.frames_in == len(recs)
     with open_log(DEMO) as src, open_log(out) as m:
         kept = list(m.frames([COMP]))
@@ -66,7 +67,7 @@ def test_map_with_fixed_thresholds(all_scored: Path, tmp_path: Path) -> None:
 
 def test_map_keep_fraction_and_raw_topic_reencoded(all_scored: Path, tmp_path: Path) -> None:
     out = tmp_path / "map.mcap"
-    res = make_map(DEMO, out, ScoreConfig(), scores=all_scored, topics=[COMP], keep_fraction=0.5)
+    res = make_map(DEMO, out, ScoreConfig(), scores=all_scored, topics=[COMP], keep_fraction=0.5, mode="paper")
     assert 3 <= res.frames_kept <= 5
     th = res.thresholds
     recs = read_scores(all_scored)[COMP]
@@ -75,7 +76,8 @@ def test_map_keep_fraction_and_raw_topic_reencoded(all_scored: Path, tmp_path: P
     raw_scored = tmp_path / "raw.scored.mcap"
     score_log(FIXTURES / "ros2idl.mcap", raw_scored, ScoreConfig(all_scores=True))
     out2 = tmp_path / "raw_map.mcap"
-    make_map(FIXTURES / "ros2idl.mcap", out2, ScoreConfig(mt=0, st=0, et=0), scores=raw_scored, image_format="png")
+    make_map(FIXTURES / "ros2idl.mcap", out2, ScoreConfig(mt=0, st=0, et=0), scores=raw_scored, image_format="png",
+             mode="paper")
     with open_log(out2) as m, open_log(FIXTURES / "ros2idl.mcap") as src:
         got = list(m.frames(["/camera/image_raw/compressed"]))
         ref = list(src.frames())
@@ -87,10 +89,11 @@ def test_map_keep_fraction_and_raw_topic_reencoded(all_scored: Path, tmp_path: P
 
 def test_empty_map_is_an_error_that_suggests_keep_fraction(all_scored: Path, tmp_path: Path) -> None:
     with pytest.raises(EmptyMapError, match="--keep-fraction"):
-        make_map(DEMO, tmp_path / "m.mcap", ScoreConfig(mt=0.99, st=0.99, et=0.99), scores=all_scored, topics=[COMP])
+        make_map(DEMO, tmp_path / "m.mcap", ScoreConfig(mt=0.99, st=0.99, et=0.99), scores=all_scored, topics=[COMP],
+                 mode="paper")
     assert not (tmp_path / "m.mcap").exists()
     r = subprocess.run([sys.executable, "-m", "memlog", "map", str(DEMO), "-o", str(tmp_path / "m.mcap"),
-                        "--scores", str(all_scored), "-t", COMP, "--et", "0.99"], capture_output=True, text=True)
+                        "--scores", str(all_scored), "-t", COMP, "--et", "0.99", "--select", "paper"], capture_output=True, text=True)
     assert r.returncode == 1 and "--keep-fraction" in r.stderr and "Traceback" not in r.stderr
 
 
@@ -98,12 +101,13 @@ def test_early_exit_scores_refused_for_calibration(tmp_path: Path) -> None:
     scored = tmp_path / "s.mcap"
     score_log(FIXTURES / "ros1.mcap", scored, ScoreConfig())
     with pytest.raises(ConfigError, match="all-scores"):
-        make_map(FIXTURES / "ros1.mcap", tmp_path / "m.mcap", scores=scored, keep_fraction=0.5)
+        make_map(FIXTURES / "ros1.mcap", tmp_path / "m.mcap", scores=scored, keep_fraction=0.5, mode="paper")
 
 
 def test_localize_finds_the_same_place(all_scored: Path, tmp_path: Path) -> None:
     """Map = every compressed frame; queries = the raw frames of the same images: best match = same index."""
-    res = make_map(DEMO, tmp_path / "map.mcap", ScoreConfig(mt=0, st=0, et=0), scores=all_scored, topics=[COMP])
+    res = make_map(DEMO, tmp_path / "map.mcap", ScoreConfig(mt=0, st=0, et=0), scores=all_scored, topics=[COMP],
+                   mode="paper")
     assert res.frames_kept == 8
     loc = localize(res.descriptors, DEMO, tmp_path / "matches.csv", k=3, topics=[RAW],  # type: ignore[arg-type]
                    annotate=tmp_path / "q.mcap")

@@ -208,7 +208,8 @@ def test_sidecar_records_error_bounds(int8_path: Path, fp32_path: Path) -> None:
     f = SETTINGS["bound_factor"]
     assert side["epsilon"] == pytest.approx(min(1.0, f * err["max"]))
     assert side["delta"] == pytest.approx(min(1.0, f * err["frame_max"]))
-    assert resmem_int8_bounds(int8_path) == (side["epsilon"], side["delta"])
+    assert resmem_int8_bounds(int8_path) == (side["epsilon"], side["delta"], err["bias"])
+    assert abs(err["bias"]) < err["max"]
     val = validation_crops()
     assert side["validation"]["crops_sha256"] == quantize._crops_sha256(val)
     assert err["n"] == len(val) == 25 * err["frames"]
@@ -219,9 +220,9 @@ def test_sidecar_records_error_bounds(int8_path: Path, fp32_path: Path) -> None:
 def test_fast_scorer_agrees_with_exact(int8_path: Path, fp32_path: Path, frames: list[Array]) -> None:
     """Fast mode makes exact mode's decision at thresholds far from and close to each frame's
     MS; beyond twice the frame bound the fp32 model is never run."""
-    eps, delta = resmem_int8_bounds(int8_path)
+    eps, delta, bias = resmem_int8_bounds(int8_path)
     fp32 = Memorability(fp32_path, threads=2, batch=5)
-    fast = FastMemorability(int8_path, fp32, eps, delta, threads=2)
+    fast = FastMemorability(int8_path, fp32, eps, delta, bias, threads=2)
     for frame in frames:
         ms = fp32(frame).ms
         assert ms is not None

@@ -292,10 +292,14 @@ def variable_speed_positions(n: int, seed: int) -> F64:
 
 
 def check_one_per_bin(sel: Selection, t: ScoreTable, bins: NDArray[np.int64], cfg: SegmentConfig) -> None:
-    """One kept frame per bin: the best by the weighted mean of brute-force mid-ranks."""
-    ranks = [mid_ranks(c) for c in (t.ms, t.ss, t.es)]
-    w = np.asarray(cfg.weights)
-    score = sum(wi * r for wi, r in zip(w, ranks)) / w.sum()
+    """One kept frame per bin: the best by the weighted mean of brute-force mid-ranks (rank) or
+    the weighted geometric mean of the raw scores (geometric)."""
+    w = np.asarray(cfg.weights, dtype=np.float64)
+    if cfg.combine == "rank":
+        ranks = [mid_ranks(c) for c in (t.ms, t.ss, t.es)]
+        score = sum(wi * r for wi, r in zip(w, ranks)) / w.sum()
+    else:
+        score = np.prod([np.power(c, wi / w.sum()) for wi, c in zip(w, (t.ms, t.ss, t.es))], axis=0)
     for b in np.unique(bins):
         rows = np.flatnonzero(bins == b)
         kept = rows[sel.keep[rows]]
@@ -415,7 +419,8 @@ def test_segment_edge_cases() -> None:
     assert one_bad.keep.tolist() == [False] and len(one_bad.gaps) == 1
     t = random_table(40, seed=8)
     allf = select(t, "segment", by="count", keep_fraction=1.0)
-    passing = (t.ms >= 0.05) & (t.ss >= 0.1) & (t.es >= 0.05)
+    d = SELECTORS["segment"]
+    passing = (t.ms >= d["min_ms"]) & (t.ss >= d["min_ss"]) & (t.es >= d["min_es"])
     assert allf.keep.tolist() == passing.tolist()
     assert len(allf.gaps) == int(np.sum(~passing))
 
@@ -445,9 +450,13 @@ def test_combined_score_is_scale_free_and_weighted() -> None:
     n = 120
     t = random_table(n, seed=21)
     low_es = make_table(t.ms, t.ss, 0.3 + 0.05 * t.es)  # same order, tiny-resolution ES range
-    a = select(t, "segment", spacing_frames=10, min_es=0.0)
-    b = select(low_es, "segment", spacing_frames=10, min_es=0.0)
-    assert a.keep.tolist() == b.keep.tolist()
+    a = select(t, "segment", spacing_frames=10, min_es=0.0, combine="rank")
+    b = select(low_es, "segment", spacing_frames=10, min_es=0.0, combine="rank")
+    assert a.keep.tolist() == b.keep.tolist()  # ranks: any increasing transform
+    scaled = make_table(t.ms, t.ss, 0.3 * t.es)
+    c = select(t, "segment", spacing_frames=10, min_es=0.0, combine="geometric")
+    e = select(scaled, "segment", spacing_frames=10, min_es=0.0, combine="geometric")
+    assert c.keep.tolist() == e.keep.tolist()  # geometric mean: rescaling one criterion
     es_only = select(t, "segment", spacing_frames=10, weights=(0, 0, 1), min_ms=0, min_ss=0, min_es=0)
     want = [10 * k + int(np.argmax(t.es[10 * k : 10 * k + 10])) for k in range(12)]
     assert es_only.kept_rows.tolist() == want

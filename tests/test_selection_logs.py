@@ -96,7 +96,7 @@ def test_redundancy_filter_drops_stops_and_loops(tmp_path: Path) -> None:
     _repeating_log(log)
     recs = _records(log, COMP, [0.9] * 8)
     res = make_map(log, tmp_path / "m.mcap", ScoreConfig(mt=0.5, st=0.5, et=0.4), scores=recs, topics=[COMP],
-                   dedup_distance=0.05, descriptor=None)
+                   dedup_distance=0.05, descriptor=None, mode="paper")
     sel = res.selections[COMP]
     assert _kept(tmp_path / "m.mcap", COMP) == [0, 1, 4, 5]
     assert sel.duplicates == {2: 1, 3: 1, 6: 0, 7: 1}

@@ -50,7 +50,7 @@ class EvalOptions:
     """Settings of an evaluation (the scoring settings are a :class:`ScoreConfig`)."""
 
     descriptor: str = "thumbnail"
-    select: str = "paper"
+    select: str = "segment"
     keep_fraction: float | None = None
     dedup: float | None = None
     tol_m: float = 25.0

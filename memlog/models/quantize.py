@@ -62,7 +62,7 @@ __all__ = [
 ]
 
 #: Bump when the quantisation settings or the calibration set change: cached models are rebuilt.
-QUANTIZER_VERSION = "3"
+QUANTIZER_VERSION = "4"
 
 #: scikit-image sample photographs used for calibration, in order (bundled with the wheel).
 CALIBRATION_IMAGES: tuple[str, ...] = (
@@ -207,9 +207,12 @@ def validation_crops(n_calibration: int = DEFAULT_N_IMAGES, widths: tuple[int, .
 
 
 def crop_error(fp32_path: Path, int8_path: Path, crops: F32, batch: int = 25) -> dict[str, float]:
-    """Errors of the int8 model against fp32 over ``crops`` (frames of 25 crops each):
-    per-crop |int8 - fp32| (``max``, ``p99``, ``mean``) and per-frame |MS(int8) - MS(fp32)|
-    with every pixel static (``frame_max``, ``frame_mean``); ``n`` crops, ``frames``."""
+    """Errors of the int8 model against fp32 over ``crops`` (frames of 25 crops each).
+
+    ``bias``: mean of int8 - fp32 over all crops (int8 runs slightly low); the rest is after
+    subtracting it: per-crop |int8 - bias - fp32| (``max``, ``p99``, ``mean``) and per-frame
+    |MS(int8 - bias) - MS(fp32)| with every pixel static (``frame_max``, ``frame_mean``);
+    ``n`` crops, ``frames``."""
     import onnxruntime as ort
 
     from memlog.scoring.memorability import crop_weights
@@ -223,10 +226,11 @@ def crop_error(fp32_path: Path, int8_path: Path, crops: F32, batch: int = 25) ->
             np.asarray(sess.run([OUTPUT_NAME], {INPUT_NAME: crops[i:i + batch]})[0]).reshape(-1)
             for i in range(0, len(crops), batch)
         ]).astype(np.float64))
-    diff = outs[1] - outs[0]
+    bias = float(np.mean(outs[1] - outs[0]))
+    diff = outs[1] - bias - outs[0]
     d = np.abs(diff)
     frame = np.abs(diff.reshape(-1, 25) @ crop_weights(None).reshape(-1))
-    return {"max": float(d.max()), "p99": float(np.percentile(d, 99)), "mean": float(d.mean()),
+    return {"bias": bias, "max": float(d.max()), "p99": float(np.percentile(d, 99)), "mean": float(d.mean()),
             "frame_max": float(frame.max()), "frame_mean": float(frame.mean()),
             "n": int(d.size), "frames": int(frame.size)}
 
@@ -300,9 +304,9 @@ def quantize_resmem(
 
     ``crops`` [N,3,227,227] float32 are the calibration inputs; ``calibration`` (JSON-able)
     describes them in the sidecar. ``validation`` (held-out crops, default
-    :func:`validation_crops`) measures the error of the result: fast mode's per-crop bound
-    ``epsilon`` and per-frame bound ``delta`` are ``SETTINGS["bound_factor"]`` times the
-    largest crop and frame errors seen. The model and its sidecar ``out_path.with_suffix('.json')``
+    :func:`validation_crops`) measures the error of the result (:func:`crop_error`): fast
+    mode subtracts its mean ``bias``, and its per-crop bound ``epsilon`` and per-frame bound
+    ``delta`` are ``SETTINGS["bound_factor"]`` times the largest crop and frame errors left. The model and its sidecar ``out_path.with_suffix('.json')``
     are written atomically; intermediate files live in a temporary directory beside
     ``out_path``. Returns ``out_path``.
     """
@@ -434,18 +438,21 @@ def resmem_int8_path() -> Path:
     return out
 
 
-def resmem_int8_bounds(path: Path | None = None) -> tuple[float, float]:
-    """Fast mode's error bounds of the int8 model, (per-crop ``epsilon``, per-frame ``delta``)."""
+def resmem_int8_bounds(path: Path | None = None) -> tuple[float, float, float]:
+    """Fast mode's error model of the int8 model: (per-crop bound ``epsilon``, per-frame
+    bound ``delta``, ``bias`` to subtract from its crop scores), from the sidecar."""
     p = resmem_int8_path() if path is None else Path(path)
     try:
         side = json.loads(p.with_suffix(".json").read_text())
-        bounds = (side["epsilon"], side["delta"])
+        eps, delta, bias = side["epsilon"], side["delta"], side["crop_error"]["bias"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ModelError(f"{p}: sidecar has no error bounds ({exc}); run `memlog models prepare resmem-int8 --force`") from None
-    for b in bounds:
+    for b in (eps, delta):
         if not isinstance(b, (int, float)) or not 0.0 <= float(b) <= 1.0:
             raise ModelError(f"{p}: invalid error bound {b!r} in its sidecar")
-    return float(bounds[0]), float(bounds[1])
+    if not isinstance(bias, (int, float)) or not abs(float(bias)) <= 1.0:
+        raise ModelError(f"{p}: invalid bias {bias!r} in its sidecar")
+    return float(eps), float(delta), float(bias)
 
 
 def calibration_description(n_images: int = DEFAULT_N_IMAGES) -> dict[str, Any]:

@@ -261,8 +261,8 @@ class Memorability:
 class FastMemorability:
     """Fast mode: an int8 surrogate of ResMem, refined with the exact model only where needed.
 
-    Every crop of non-zero weight is scored by the surrogate (one batch), giving an estimate of
-    MS. Two error bounds, both measured when the surrogate was built (see
+    Every crop of non-zero weight is scored by the surrogate (one batch, its mean error
+    ``bias`` subtracted), giving an estimate of MS. Two error bounds, both measured when the surrogate was built (see
     :mod:`memlog.models.quantize`), decide what happens next:
 
     * ``delta``, the frame-level bound on |MS(surrogate) - MS|: when the estimate is further
@@ -275,10 +275,11 @@ class FastMemorability:
     """
 
     def __init__(self, surrogate: Path | Memorability, exact: Memorability, epsilon: float,
-                 delta: float | None = None, *, threads: int | None = None) -> None:
+                 delta: float | None = None, bias: float = 0.0, *, threads: int | None = None) -> None:
         """``surrogate``: the int8 ONNX file (or an open :class:`Memorability`); ``exact``: the
         fp32 model; ``epsilon``/``delta``: the surrogate's per-crop and per-frame error
-        bounds (``delta`` defaults to ``epsilon``, which bounds the frame error too)."""
+        bounds (``delta`` defaults to ``epsilon``, which bounds the frame error too) once
+        ``bias`` (its mean error) is subtracted from its crop scores."""
         delta = epsilon if delta is None else delta
         for name, v in (("epsilon", epsilon), ("delta", delta)):
             if not (np.isfinite(v) and 0.0 <= v <= 1.0):
@@ -288,6 +289,7 @@ class FastMemorability:
         self.exact = exact
         self.epsilon = float(epsilon)
         self.delta = float(delta)
+        self.bias = float(bias)
         self.batch = exact.batch
 
     def __call__(
@@ -305,7 +307,7 @@ class FastMemorability:
         todo = np.flatnonzero(w > 0)
         est = np.full(GRID * GRID, np.nan, dtype=np.float32)
         if todo.size:
-            est[todo] = self.surrogate.score_crops(crops[todo])
+            est[todo] = np.clip(self.surrogate.score_crops(crops[todo]) - np.float32(self.bias), 0.0, 1.0)
         filled = np.where(np.isnan(est), 0.0, est).astype(np.float64)
         ms_est = float(np.dot(w, filled))
         ss = float(w.sum())

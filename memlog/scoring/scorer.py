@@ -143,8 +143,8 @@ class Scorer:
                 from memlog.scoring.memorability import FastMemorability
 
                 int8 = resmem_int8_path()
-                eps, delta = resmem_int8_bounds(int8)
-                self._mem = FastMemorability(int8, exact, eps, delta, threads=threads)
+                eps, delta, bias = resmem_int8_bounds(int8)
+                self._mem = FastMemorability(int8, exact, eps, delta, bias, threads=threads)
             else:
                 self._mem = exact
         return self._mem

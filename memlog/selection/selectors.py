@@ -19,15 +19,16 @@ __all__ = ["SELECTORS", "select"]
 SELECTORS: dict[str, dict[str, Any]] = {
     "paper": {"mt": 0.5, "st": 0.6, "et": 0.4},
     "calibrated": {"keep_fraction": 0.1},
+    # chosen on the shared Nordland slice (benchmarks/selection_table.py --tune; README)
     "segment": {
         "by": "auto",
-        "keep_fraction": 0.1,
+        "keep_fraction": 0.25,
         "view_distance": 0.3,
-        "min_ms": 0.05,
+        "min_ms": 0.0,
         "min_ss": 0.1,
-        "min_es": 0.05,
+        "min_es": 0.0,
         "weights": (1.0, 1.0, 1.0),
-        "combine": "rank",
+        "combine": "geometric",
     },
 }
 
