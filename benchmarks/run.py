@@ -137,7 +137,8 @@ def case_score(log: str, mode: str, limit: str, thresholds: str = "") -> dict[st
     from memlog.scoring.scorer import Scorer
 
     th = dict(zip(("mt", "st", "et"), map(float, thresholds.split(",")))) if thresholds else {}
-    cfg = ScoreConfig(mode=mode if mode != "all-scores" else "exact", all_scores=mode == "all-scores", **th)
+    base_mode = {"all-scores": "exact", "fast-int8": "fast"}.get(mode, mode)
+    cfg = ScoreConfig(mode=base_mode, all_scores=mode == "all-scores", fast_refine=mode != "fast-int8", **th)
     scorer = Scorer(cfg).load()
     n_max = int(limit)
     decisions = []
@@ -148,7 +149,9 @@ def case_score(log: str, mode: str, limit: str, thresholds: str = "") -> dict[st
     t0 = time.perf_counter()
     with open_log(SHARED / log) as r:
         topic = r.camera_topics()[0]
-        frames = (f for i, f in zip(range(n_max), r.frames([topic])))
+        total = next(t.count for t in r.info().topics if t.topic == topic)
+        stride = max(1, total // n_max)  # frames spread over the whole log
+        frames = (f for i, f in zip(range(n_max), r.frames([topic], stride=stride)))
         for _, s in scorer.score_stream(frames, lambda fr: fr.decode_bgr()):
             assert not isinstance(s, Exception), s
             decisions.append([s.selected, s.rejected_by])
@@ -215,7 +218,7 @@ def bench_score(n: int) -> None:
         ms = sorted(float(v[0]) for v in paper["ms"])
         mt = round(ms[len(ms) // 2], 4)
         for setting, th in (("paper 0.5/0.6/0.4", ""), (f"stress MT={mt}, ST=ET=0", f"{mt},0,0")):
-            modes = ["exact", "all-scores"] + (["fast"] if fast else [])
+            modes = ["exact", "all-scores"] + (["fast", "fast-int8"] if fast else [])
             # the paper-literal pipeline computes every score whatever the thresholds: decide again
             res = {"paper": paper if not th else
                    {**paper, "decisions": [[v[0] >= mt, None] for v in paper["ms"]]}}
@@ -227,10 +230,10 @@ def bench_score(n: int) -> None:
                              *(f"{st.get(k, 0):.1f}" for k in ("decode", "resize", "staticity", "entropy", "memorability")),
                              f"{r['crops_per_frame']:.1f}", f"{r['surrogate_per_frame']:.1f}", f"{r['fps']:.3f}",
                              f"{r['fps'] / p['fps']:.1f}x", f"{r['peak_mb']:.0f}"])
-            for m in [m for m in ("exact", "fast") if m in res]:
+            for m in [m for m in ("exact", "fast", "fast-int8") if m in res]:
                 same, tot = _agree(p, res[m])
                 row = [log, setting, m, f"{same}/{tot} ({100.0 * same / tot:.1f} %)"]
-                if m == "fast":
+                if m.startswith("fast"):
                     s2, t2 = _agree(res["exact"], res[m])
                     row.append(f"{s2}/{t2} ({100.0 * s2 / t2:.1f} %)")
                 else:

@@ -23,9 +23,13 @@ def _add_config_flags(p: argparse.ArgumentParser) -> None:
                    help="compute every score of every frame, even after it fails (for sweeps and reports)")
     mode = g.add_mutually_exclusive_group()
     mode.add_argument("--fast", dest="mode", action="store_const", const="fast",
-                      help="experimental int8 memorability model (needs `memlog models prepare resmem-int8`)")
+                      help="int8 memorability surrogate, fp32 only for frames near MT: exact mode's decisions "
+                           "within the surrogate's measured error (needs `memlog models prepare resmem-int8`)")
     mode.add_argument("--paper-literal", dest="mode", action="store_const", const="paper",
                       help="the literal pipeline: scikit-image entropy, all crops, no early exit (slow; reference)")
+    g.add_argument("--no-refine", dest="fast_refine", action="store_false", default=None,
+                   help="with --fast: the int8 estimate decides every frame alone (faster near MT; decisions "
+                        "within its error of MT may differ from exact mode)")
     g.add_argument("--normalize", choices=["all", "static"], help="divide MS/ES by all pixels (paper) or static pixels")
     g.add_argument("--threads", type=int, help="onnxruntime threads (default: all cores)")
 
@@ -36,6 +40,7 @@ def config_from_args(args: argparse.Namespace) -> Any:
     return load_config(
         args.preset, args.config, mt=args.mt, st=args.st, et=args.et, all_scores=args.all_scores,
         mode=getattr(args, "mode", None), normalize=args.normalize, threads=args.threads,
+        fast_refine=getattr(args, "fast_refine", None),
         maps=getattr(args, "maps", None) or None,
     )
 
@@ -112,7 +117,7 @@ def cmd_models(args: argparse.Namespace) -> int:
     if missing:
         print(f"\nmissing: {', '.join(missing)}: run `memlog models prepare`")
     if any(m.name == "resmem-int8" and not m.ready for m in models):
-        print("\nfast mode (--fast, experimental) needs `memlog models prepare resmem-int8`")
+        print("\nfast mode (--fast) needs `memlog models prepare resmem-int8` (about 5 minutes, once)")
     print("\nNote: ResMem weights (memorability) are licensed for NON-COMMERCIAL use only "
           "(ResMem Non-commercial License, University of Chicago).")
     return EXIT_OK if not missing or args.action == "list" else EXIT_ERROR
@@ -223,7 +228,8 @@ def cmd_map(args: argparse.Namespace) -> int:
          f"{_fmt_size(res.bytes_in)} of camera data -> map log {_fmt_size(res.bytes_out)} "
          f"({100 * d['byte_fraction']:.1f} %)")
     if res.thresholds:
-        info("memlog: thresholds " + ", ".join(f"{k.upper()} {v:.4f}" for k, v in res.thresholds.items()))
+        what = "segment minimum scores" if args.select == "segment" else "thresholds"
+        info(f"memlog: {what} " + ", ".join(f"{k.upper()} {v:.4f}" for k, v in res.thresholds.items()))
     for t, s in res.selections.items():
         gaps = len(s.gaps)
         info(f"memlog: {t}: {s.n_kept}/{s.n_frames} kept; dropped: "
@@ -317,7 +323,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                      fmt(r.get("recall@5")), fmt(r["paper_protocol"]["auc"]), fmt(r["paper_protocol"]["recall@1"]),
                      f"{r['match_seconds_per_query'] * 1e3:.3f}"])
     print(_table(rows, ["map", "frames", "coverage", "AUC", "R@1", "R@5", "paper AUC", "paper R@1", "ms/query"]))
-    info(f"memlog: thresholds {res['memorable']['thresholds']}; wrote {args.output}/results.json"
+    what = "segment minimum scores" if args.select == "segment" else "thresholds"
+    info(f"memlog: {what} {res['memorable']['thresholds']}; wrote {args.output}/results.json"
          + ("" if args.no_report else f" and {args.output}/report.html"))
     return EXIT_OK
 

@@ -33,8 +33,10 @@ class ScoreConfig:
     "all" divides MS/ES by all pixels (paper formula), "static" by static pixels only.
     ``mode``: "exact" (fast exact entropy, early exit, crop-level bounds), "paper" (every
     score of every frame, scikit-image entropy, no early exit: the literal pipeline, for
-    reference), "fast" (int8 memorability model; approximate). ``all_scores`` computes every
-    score even after a frame fails (needed for sweeps).
+    reference), "fast" (int8 memorability surrogate; frames whose estimate lies within its
+    measured error of MT are rescored with the fp32 model unless ``fast_refine`` is false, so the
+    decisions are exact mode's). ``all_scores`` computes every score even after a frame fails
+    (needed for sweeps).
     """
 
     mt: float = 0.5
@@ -50,6 +52,7 @@ class ScoreConfig:
     mode: str = "exact"
     all_scores: bool = False
     crop_batch: int = 5
+    fast_refine: bool = True  # fast mode: rescore frames within the int8 error of MT with fp32
     threads: int = 0  # onnxruntime intra-op threads; 0 = all cores
     maps: bool = False
 

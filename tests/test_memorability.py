@@ -577,3 +577,19 @@ def test_fast_mode_agrees_when_surrogate_within_bound(scorer: Memorability, fram
                 assert r.n_scored == 0
     with pytest.raises(ScoringError, match="epsilon"):
         FastMemorability(surrogate, surrogate, 1.5)
+
+
+def test_fast_mode_without_refinement_trusts_the_surrogate(scorer: Memorability, frames: list[Array]) -> None:
+    """refine=False: the surrogate's (bias-corrected) MS decides alone, the exact model never runs."""
+    cached = _CachingSession(scorer.session)
+    offsets = np.full(25, 0.02, np.float32)  # runs high by 0.02, no bias correction
+    surrogate = _with_session(_OffsetSession(cached, offsets), 25)
+    fast = FastMemorability(surrogate, _with_session(cached, 3), 0.05, 0.03, refine=False)
+    frame = frames[3]
+    ms = memorability_score(memorability_matrix(cached, crops_from_frame(frame)))
+    est = ms + 0.02
+    for t in (ms - 0.01, ms + 0.01, est + 0.001):
+        r = fast(frame, threshold=t)
+        assert r.n_scored == 0 and r.n_surrogate == 25
+        assert r.passed == (est >= t)  # at ms + 0.01 this differs from exact mode, by design
+        assert r.ms == pytest.approx(est, abs=1e-5)

@@ -3,7 +3,7 @@
 ``memlog models prepare resmem-int8`` calls :func:`prepare_resmem_int8`, which calibrates and
 quantises the prepared fp32 model (:func:`memlog.models.resmem.resmem_onnx_path`) with
 :mod:`onnxruntime.quantization` and caches it as ``cache_dir()/models/resmem-1.1.6-int8.onnx``
-with a JSON sidecar (hashes, settings, calibration set). :func:`resmem_int8_path` returns the
+with a JSON sidecar (hashes, settings, calibration set, measured error bounds). :func:`resmem_int8_path` returns the
 cached model, or raises :class:`ModelError` when it is missing or stale. The int8 model has the
 fp32 model's input and outputs, so :class:`memlog.scoring.memorability.Memorability` runs it as is.
 
@@ -11,13 +11,20 @@ Calibration data: crops of the real photographs that ship inside scikit-image (n
 extra files), each rescaled to 1135 x 1135 with ``cv2.INTER_LINEAR`` and cut into the 25 crops
 of :func:`memlog.scoring.memorability.crops_from_frame`, exactly as a camera frame would be.
 
-What is quantised (see :data:`SETTINGS`): the ResNet-152 trunk (~94 % of the compute):
-per-channel int8 weights with a 7-bit range, uint8 activations, Percentile calibration. The
-AlexNet-like branch, the pooled features, the fully connected head and the sigmoid stay float32.
+Error bounds: after quantising, both models score held-out frames (:func:`validation_crops`:
+the photos not calibrated on, and every photo as a low-resolution camera would see it). The
+sidecar records the int8 model's mean error (``bias``, subtracted in fast mode) and, after
+that, the largest per-crop and per-frame errors times ``bound_factor``: ``epsilon`` and
+``delta``, which :class:`memlog.scoring.memorability.FastMemorability` uses to decide when the
+int8 score settles a frame and when the fp32 model must look.
 
-Speed is bounded by the hardware: on a CPU without VNNI (AVX2 only) the u8 x s8 kernels are
-about twice as fast as fp32, so the int8 model is ~1.85x faster, not 10x; ResMem's head is also
-sensitive (7-bit weights alone move single-crop scores by up to ~0.04).
+What is quantised (see :data:`SETTINGS`): the ResNet-152 trunk (~94 % of the compute):
+per-channel int8 weights (7-bit range on CPUs without VNNI), uint8 activations, Percentile
+calibration. The AlexNet-like branch, the pooled features, the fully connected head and the
+sigmoid stay float32.
+
+Speed is bounded by the hardware: without VNNI (AVX2 only) the u8 x s8 kernels are about twice as
+fast as fp32 (the int8 model ~1.85x faster); with AVX-512 VNNI about 3x.
 """
 
 from __future__ import annotations

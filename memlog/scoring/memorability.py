@@ -272,10 +272,13 @@ class FastMemorability:
       surrogate score, until ``MS >= threshold`` is decided — as exact mode would decide it.
 
     Without a threshold the surrogate's MS is the result (``exact=False``, bounds +-``delta``).
+    With ``refine=False`` the surrogate's estimate decides every frame alone (the exact model is
+    never run: fastest, but decisions within ``delta`` of the threshold may differ).
     """
 
     def __init__(self, surrogate: Path | Memorability, exact: Memorability, epsilon: float,
-                 delta: float | None = None, bias: float = 0.0, *, threads: int | None = None) -> None:
+                 delta: float | None = None, bias: float = 0.0, *, refine: bool = True,
+                 threads: int | None = None) -> None:
         """``surrogate``: the int8 ONNX file (or an open :class:`Memorability`); ``exact``: the
         fp32 model; ``epsilon``/``delta``: the surrogate's per-crop and per-frame error
         bounds (``delta`` defaults to ``epsilon``, which bounds the frame error too) once
@@ -290,6 +293,7 @@ class FastMemorability:
         self.epsilon = float(epsilon)
         self.delta = float(delta)
         self.bias = float(bias)
+        self.refine = bool(refine)
         self.batch = exact.batch
 
     def __call__(
@@ -313,8 +317,11 @@ class FastMemorability:
         ss = float(w.sum())
         low, high = max(0.0, ms_est - self.delta), min(ss, ms_est + self.delta)
         n_sur = int(todo.size)
-        if threshold is None or low >= threshold + DECISION_MARGIN or high < threshold - DECISION_MARGIN:
-            passed = None if threshold is None else low >= threshold + DECISION_MARGIN
+        if threshold is None or not self.refine:
+            passed = None if threshold is None else ms_est >= threshold
+            return MemorabilityResult(est.reshape(GRID, GRID), ms_est, low, high, False, 0, passed, n_sur)
+        if low >= threshold + DECISION_MARGIN or high < threshold - DECISION_MARGIN:
+            passed = low >= threshold + DECISION_MARGIN
             return MemorabilityResult(est.reshape(GRID, GRID), ms_est, low, high, False, 0, passed, n_sur)
         lo = np.clip(filled - self.epsilon, 0.0, 1.0)
         hi = np.clip(filled + self.epsilon, 0.0, 1.0)

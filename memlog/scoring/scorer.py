@@ -144,7 +144,8 @@ class Scorer:
 
                 int8 = resmem_int8_path()
                 eps, delta, bias = resmem_int8_bounds(int8)
-                self._mem = FastMemorability(int8, exact, eps, delta, bias, threads=threads)
+                self._mem = FastMemorability(int8, exact, eps, delta, bias, refine=self.config.fast_refine,
+                                             threads=threads)
             else:
                 self._mem = exact
         return self._mem
