@@ -94,6 +94,11 @@ def segment_from_args(args: argparse.Namespace) -> dict[str, Any] | None:
     return seg
 
 
+def _thresholds_label(args: argparse.Namespace) -> str:
+    """What a selection's thresholds are: the paper rule's, or segment selection's minimum scores."""
+    return "segment minimum scores" if args.select == "segment" else "thresholds"
+
+
 # -- models -------------------------------------------------------------------------------
 def cmd_models(args: argparse.Namespace) -> int:
     from memlog.models.registry import list_models, prepare_models
@@ -228,8 +233,8 @@ def cmd_map(args: argparse.Namespace) -> int:
          f"{_fmt_size(res.bytes_in)} of camera data -> map log {_fmt_size(res.bytes_out)} "
          f"({100 * d['byte_fraction']:.1f} %)")
     if res.thresholds:
-        what = "segment minimum scores" if args.select == "segment" else "thresholds"
-        info(f"memlog: {what} " + ", ".join(f"{k.upper()} {v:.4f}" for k, v in res.thresholds.items()))
+        info(f"memlog: {_thresholds_label(args)} "
+             + ", ".join(f"{k.upper()} {v:.4f}" for k, v in res.thresholds.items()))
     for t, s in res.selections.items():
         gaps = len(s.gaps)
         info(f"memlog: {t}: {s.n_kept}/{s.n_frames} kept; dropped: "
@@ -323,8 +328,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                      fmt(r.get("recall@5")), fmt(r["paper_protocol"]["auc"]), fmt(r["paper_protocol"]["recall@1"]),
                      f"{r['match_seconds_per_query'] * 1e3:.3f}"])
     print(_table(rows, ["map", "frames", "coverage", "AUC", "R@1", "R@5", "paper AUC", "paper R@1", "ms/query"]))
-    what = "segment minimum scores" if args.select == "segment" else "thresholds"
-    info(f"memlog: {what} {res['memorable']['thresholds']}; wrote {args.output}/results.json"
+    info(f"memlog: {_thresholds_label(args)} {res['memorable']['thresholds']}; wrote {args.output}/results.json"
          + ("" if args.no_report else f" and {args.output}/report.html"))
     return EXIT_OK
 

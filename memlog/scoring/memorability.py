@@ -10,6 +10,9 @@ bilinear resize is separable: map = A M A^T). With a threshold MT, crops are sco
 batches by decreasing weight and scoring stops as soon as the bounds (unscored crops at 0 or
 at 1; ResMem outputs lie in 0..1) decide MS >= MT; crops of weight 0 (fully dynamic) are never
 scored.
+
+:class:`FastMemorability` (fast mode) puts an int8 surrogate in front: its crop scores, with
+their measured error bounds, settle the frames whose MS is far from MT without the exact model.
 """
 
 from __future__ import annotations
@@ -262,8 +265,8 @@ class FastMemorability:
     """Fast mode: an int8 surrogate of ResMem, refined with the exact model only where needed.
 
     Every crop of non-zero weight is scored by the surrogate (one batch, its mean error
-    ``bias`` subtracted), giving an estimate of MS. Two error bounds, both measured when the surrogate was built (see
-    :mod:`memlog.models.quantize`), decide what happens next:
+    ``bias`` subtracted), giving an estimate of MS. Two error bounds, both measured when the
+    surrogate was built (see :mod:`memlog.models.quantize`), decide what happens next:
 
     * ``delta``, the frame-level bound on |MS(surrogate) - MS|: when the estimate is further
       than ``delta`` from the threshold, the surrogate's decision stands (no exact crop);
