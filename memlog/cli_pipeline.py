@@ -118,7 +118,8 @@ def cmd_models(args: argparse.Namespace) -> int:
             print(f"  {m.name}: sha256 {m.sha256}")
     from memlog.models.registry import DEFAULT_PREPARE
 
-    missing = [m.name for m in models if not m.ready and m.name in DEFAULT_PREPARE]
+    wanted = set(args.names) if args.action == "prepare" and args.names else set(DEFAULT_PREPARE)
+    missing = [m.name for m in models if not m.ready and m.name in wanted]
     if missing:
         print(f"\nmissing: {', '.join(missing)}: run `memlog models prepare`")
     if any(m.name == "resmem-int8" and not m.ready for m in models):
