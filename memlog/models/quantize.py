@@ -3,9 +3,10 @@
 ``memlog models prepare resmem-int8`` calls :func:`prepare_resmem_int8`, which calibrates and
 quantises the prepared fp32 model (:func:`memlog.models.resmem.resmem_onnx_path`) with
 :mod:`onnxruntime.quantization` and caches it as ``cache_dir()/models/resmem-1.1.6-int8.onnx``
-with a JSON sidecar (hashes, settings, calibration set, measured error bounds). :func:`resmem_int8_path` returns the
-cached model, or raises :class:`ModelError` when it is missing or stale. The int8 model has the
-fp32 model's input and outputs, so :class:`memlog.scoring.memorability.Memorability` runs it as is.
+with a JSON sidecar (hashes, settings, calibration set, measured error bounds).
+:func:`resmem_int8_path` returns the cached model, or raises :class:`ModelError` when it is
+missing or stale. The int8 model has the fp32 model's input and outputs, so
+:class:`memlog.scoring.memorability.Memorability` runs it as is.
 
 Calibration data: crops of the real photographs that ship inside scikit-image (no network, no
 extra files), each rescaled to 1135 x 1135 with ``cv2.INTER_LINEAR`` and cut into the 25 crops
@@ -30,6 +31,7 @@ fast as fp32 (the int8 model ~1.85x faster); with AVX-512 VNNI about 3x.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import io
 import json
@@ -124,6 +126,7 @@ _CAL_BATCH = int(SETTINGS["calibration_batch"])
 F32 = npt.NDArray[np.float32]
 
 
+@functools.lru_cache(maxsize=1)
 def cpu_has_vnni() -> bool:
     """Whether this CPU has VNNI int8 dot products (AVX-512 VNNI, AVX-VNNI or AMX), from /proc/cpuinfo."""
     try:
@@ -220,19 +223,15 @@ def crop_error(fp32_path: Path, int8_path: Path, crops: F32, batch: int = 25) ->
     subtracting it: per-crop |int8 - bias - fp32| (``max``, ``p99``, ``mean``) and per-frame
     |MS(int8 - bias) - MS(fp32)| with every pixel static (``frame_max``, ``frame_mean``);
     ``n`` crops, ``frames``."""
-    import onnxruntime as ort
-
-    from memlog.scoring.memorability import crop_weights
+    from memlog.scoring.memorability import Memorability, crop_weights
 
     if len(crops) == 0 or len(crops) % 25:
         raise ModelError(f"validation crops must be whole frames of 25 crops, got {len(crops)}")
     outs = []
     for path in (fp32_path, int8_path):
-        sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-        outs.append(np.concatenate([
-            np.asarray(sess.run([OUTPUT_NAME], {INPUT_NAME: crops[i:i + batch]})[0]).reshape(-1)
-            for i in range(0, len(crops), batch)
-        ]).astype(np.float64))
+        model = Memorability(path, batch=batch)
+        outs.append(np.concatenate([model.score_crops(crops[i:i + batch])
+                                    for i in range(0, len(crops), batch)]).astype(np.float64))
     bias = float(np.mean(outs[1] - outs[0]))
     diff = outs[1] - bias - outs[0]
     d = np.abs(diff)
@@ -313,7 +312,8 @@ def quantize_resmem(
     describes them in the sidecar. ``validation`` (held-out crops, default
     :func:`validation_crops`) measures the error of the result (:func:`crop_error`): fast
     mode subtracts its mean ``bias``, and its per-crop bound ``epsilon`` and per-frame bound
-    ``delta`` are ``SETTINGS["bound_factor"]`` times the largest crop and frame errors left. The model and its sidecar ``out_path.with_suffix('.json')``
+    ``delta`` are ``SETTINGS["bound_factor"]`` times the largest crop and frame errors left.
+    The model and its sidecar ``out_path.with_suffix('.json')``
     are written atomically; intermediate files live in a temporary directory beside
     ``out_path``. Returns ``out_path``.
     """
