@@ -31,9 +31,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from memlog.descriptors.base import make_describer
-from memlog.evaluate.metrics import evaluate_map_only, parse_truth
-from memlog.localize.match import match, time_per_query
+from memlog.descriptors.registry import make_describer
+from memlog.evaluation.metrics import evaluate_map_only, parse_truth
+from memlog.descriptors.search import match, time_per_query
 
 TOPIC = "/camera/image_raw/compressed"
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     if args.prepare:
-        from memlog.descriptors.dinov2 import prepare_dinov2
+        from memlog.models.dinov2 import prepare_dinov2
 
         prepare_dinov2()
     refs = load_frames(args.data / "nordland_dev_summer.mcap", args.limit)

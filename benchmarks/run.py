@@ -92,7 +92,7 @@ def case_big_read(path: str) -> dict[str, Any]:
 
 
 def case_big_convert(path: str) -> dict[str, Any]:
-    from memlog.convert import convert
+    from memlog.steps.convert import convert
 
     base = _peak_mb()
     out = Path(path).with_suffix(".converted.mcap")
@@ -121,7 +121,7 @@ def bench_big(mb: int) -> None:
 
 
 def case_convert(log: str) -> dict[str, Any]:
-    from memlog.convert import convert
+    from memlog.steps.convert import convert
 
     base = _peak_mb()
     with tempfile.TemporaryDirectory() as d:
@@ -132,7 +132,7 @@ def case_convert(log: str) -> dict[str, Any]:
 
 
 def case_score(log: str, mode: str, limit: str, thresholds: str = "") -> dict[str, Any]:
-    from memlog.config import ScoreConfig
+    from memlog.scoring.config import ScoreConfig
     from memlog.io import open_log
     from memlog.scoring.scorer import Scorer
 
@@ -190,10 +190,10 @@ def bench_io() -> None:
 
 def _fast_ready() -> bool:
     from memlog.errors import ModelError
-    from memlog.models.registry import memorability_model_path
+    from memlog.models.quantize import resmem_int8_path
 
     try:
-        memorability_model_path("fast")
+        resmem_int8_path()
         return True
     except (ModelError, ImportError):
         print("(fast mode skipped: run `memlog models prepare resmem-int8` first)")

@@ -30,8 +30,8 @@ SHARED = Path(os.environ.get("MEMLOG_SHARED_DATA", ROOT.parent / "shared" / "dat
 
 
 def run(out: Path, select: str, fraction: float, descriptor: str, extra: dict[str, Any]) -> dict[str, Any]:
-    from memlog.config import ScoreConfig
-    from memlog.evaluate.pipeline import EvalOptions, evaluate
+    from memlog.selection.config import SelectionConfig
+    from memlog.steps.evaluate import EvaluateConfig, evaluate
 
     base = out / "base"
     d = out / (f"{select}-{fraction:g}" + ("-" + "-".join(f"{k}={v}" for k, v in sorted(extra.items())) if extra else ""))
@@ -39,10 +39,10 @@ def run(out: Path, select: str, fraction: float, descriptor: str, extra: dict[st
     for name in ("reference.scored.mcap", f"reference.{descriptor}.parquet", f"query.{descriptor}.parquet"):
         if (base / name).is_file() and not (d / name).exists():
             os.link(base / name, d / name)
-    res = evaluate(SHARED / "nordland_dev_summer.mcap", SHARED / "nordland_dev_winter.mcap", d, ScoreConfig(),
-                   truth=SHARED / "nordland_dev_truth.json",
-                   options=EvalOptions(descriptor=descriptor, select=select, keep_fraction=fraction,
-                                       segment=extra, report=False))
+    cfg = EvaluateConfig(select=SelectionConfig(mode=select, keep_fraction=fraction, **extra),  # type: ignore[arg-type]
+                         descriptor=descriptor, report=False)
+    res = evaluate(SHARED / "nordland_dev_summer.mcap", SHARED / "nordland_dev_winter.mcap", d, cfg,
+                   truth=SHARED / "nordland_dev_truth.json").results
     for name in ("reference.scored.mcap", f"reference.{descriptor}.parquet", f"query.{descriptor}.parquet"):
         if not (base / name).exists():
             base.mkdir(parents=True, exist_ok=True)
@@ -65,12 +65,13 @@ def tune(out: Path, fractions: list[float], descriptor: str) -> None:
     """The segment-selection grid, evaluated in-process on the cached reference files."""
     import numpy as np
 
-    from memlog.descriptors.parquet import read_descriptors
-    from memlog.evaluate.metrics import evaluate_map_only, evaluate_paper, parse_truth
-    from memlog.localize.match import match
-    from memlog.mapping import choose_frames, score_table
-    from memlog.score import read_scores
+    from memlog.outputs.descriptor_table import read_descriptors
+    from memlog.evaluation.metrics import evaluate_map_only, evaluate_paper, parse_truth
+    from memlog.descriptors.search import match
+    from memlog.outputs.annotated import read_scores
     from memlog.selection import random_masks, uniform_mask
+    from memlog.selection.config import SelectionConfig
+    from memlog.steps.map import score_table
 
     base = out / "base"
     recs = next(iter(read_scores(base / "reference.scored.mcap").values()))
@@ -97,16 +98,16 @@ def tune(out: Path, fractions: list[float], descriptor: str) -> None:
     n = len(ref)
     weights = [(1, 1, 1), (1, 0, 0), (0, 0, 1), (1, 0, 1), (2, 0, 1), (1, 0, 2)]
     for fr in fractions:
-        sel = choose_frames(table, "paper", keep_fraction=fr)
+        sel = SelectionConfig(mode="paper", keep_fraction=fr).run(table)
         line(fr, "paper rule (calibrated)", score(sel.keep), int(sel.keep.sum()))
         k = 0
         for w in weights:
             for comb in ("rank", "geometric"):
-                sel = choose_frames(table, "segment", keep_fraction=fr, weights=w, combine=comb)
+                sel = SelectionConfig(keep_fraction=fr, weights=w, combine=comb).run(table)  # type: ignore[arg-type]
                 k = int(sel.keep.sum())
                 line(fr, f"segment w(ms,ss,es)={w} {comb}", score(sel.keep), k)
         for comb in ("rank", "geometric"):  # the minimum scores: dark frames (tunnels) dropped or not
-            sel = choose_frames(table, "segment", keep_fraction=fr, combine=comb, min_ms=0.05, min_es=0.05)
+            sel = SelectionConfig(keep_fraction=fr, combine=comb, min_ms=0.05, min_es=0.05).run(table)  # type: ignore[arg-type]
             line(fr, f"segment {comb}, min_ms = min_es = 0.05", score(sel.keep), int(sel.keep.sum()))
         line(fr, "uniform", score(uniform_mask(n, k)), k)
         rand = np.array([score(m) for m in random_masks(n, k, range(20))])

@@ -1,7 +1,55 @@
-"""memlog: memorable maps from recorded robot drives."""
+"""memlog: memorable maps from recorded robot drives.
+
+The Python API (for notebooks) is the pipeline steps with their typed configs::
+
+    import memlog
+    run = memlog.score("drive.bag", "drive.scored.mcap", memlog.ScoreConfig(all_scores=True))
+    res = memlog.make_map("drive.bag", "map.mcap", memlog.MapConfig(), scores="drive.scored.mcap")
+    loc = memlog.localize("map.parquet", "query.bag", "matches.parquet")
+
+Names load on first use, so ``import memlog`` is cheap.
+"""
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
+import importlib
+from typing import TYPE_CHECKING, Any
 
-__all__ = ["__version__"]
+from memlog._version import __version__
+
+if TYPE_CHECKING:
+    from memlog.io.base import FrameWindow as FrameWindow
+    from memlog.io.open import open_log as open_log
+    from memlog.scoring.config import ScoreConfig as ScoreConfig
+    from memlog.selection.config import SelectionConfig as SelectionConfig
+    from memlog.steps.convert import ConvertConfig as ConvertConfig, convert as convert
+    from memlog.steps.evaluate import EvaluateConfig as EvaluateConfig, evaluate as evaluate
+    from memlog.steps.localize import LocalizeConfig as LocalizeConfig, localize as localize
+    from memlog.steps.map import MapConfig as MapConfig, make_map as make_map
+    from memlog.steps.score import score as score
+
+
+_WHERE = {
+    "open_log": "memlog.io.open",
+    "FrameWindow": "memlog.io.base",
+    "ScoreConfig": "memlog.scoring.config",
+    "SelectionConfig": "memlog.selection.config",
+    "convert": "memlog.steps.convert",
+    "ConvertConfig": "memlog.steps.convert",
+    "score": "memlog.steps.score",
+    "make_map": "memlog.steps.map",
+    "MapConfig": "memlog.steps.map",
+    "localize": "memlog.steps.localize",
+    "LocalizeConfig": "memlog.steps.localize",
+    "evaluate": "memlog.steps.evaluate",
+    "EvaluateConfig": "memlog.steps.evaluate",
+}
+
+__all__ = ["__version__", *sorted(_WHERE)]
+
+
+def __getattr__(name: str) -> Any:
+    module = _WHERE.get(name)
+    if module is None:
+        raise AttributeError(f"module 'memlog' has no attribute {name!r}")
+    return getattr(importlib.import_module(module), name)

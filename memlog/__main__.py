@@ -2,6 +2,6 @@
 
 import sys
 
-from memlog.cli import main
+from memlog.cli.app import main
 
 sys.exit(main())

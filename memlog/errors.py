@@ -1,22 +1,44 @@
-"""Error classes, one per module family (like rosbags)."""
+"""Error classes, one per module family (like rosbags), and which exit code each means.
+
+* :class:`UsageError` (exit 2): the command was called wrongly (a flag value, a config key or
+  value, an output path). Raised before any expensive work.
+* :class:`LogReadError` etc. (exit 1): the work could not be done; nothing was written under
+  the output's name. Damaged input that could still be read is not an error: the run finishes
+  and exits 3 (see :mod:`memlog.cli`).
+"""
 
 from __future__ import annotations
 
 __all__ = [
     "MemlogError",
+    "UsageError",
+    "ConfigError",
+    "OutputPathError",
     "LogReadError",
     "ImageDecodeError",
     "LogWriteError",
     "ModelError",
     "ScoringError",
+    "SelectionError",
     "DescriptorError",
     "EvaluationError",
-    "ConfigError",
 ]
 
 
 class MemlogError(Exception):
     """Base class of every error memlog raises on purpose."""
+
+
+class UsageError(MemlogError):
+    """memlog was called wrongly (exit code 2): the message names the flag or setting."""
+
+
+class ConfigError(UsageError):
+    """A configuration file, setting or option value is invalid."""
+
+
+class OutputPathError(UsageError):
+    """An output path cannot be used (missing directory, a directory, or one of the inputs)."""
 
 
 class LogReadError(MemlogError):
@@ -32,11 +54,15 @@ class LogWriteError(MemlogError):
 
 
 class ModelError(MemlogError):
-    """A model file is missing, corrupt or could not be converted."""
+    """A model file is missing, corrupt or could not be converted or run."""
 
 
 class ScoringError(MemlogError):
     """A frame could not be scored (wrong shape, model failure)."""
+
+
+class SelectionError(MemlogError):
+    """Frames could not be selected (for example: no frame passes, so the map would be empty)."""
 
 
 class DescriptorError(MemlogError):
@@ -45,7 +71,3 @@ class DescriptorError(MemlogError):
 
 class EvaluationError(MemlogError):
     """Ground truth or evaluation inputs are invalid."""
-
-
-class ConfigError(MemlogError):
-    """A configuration file or option is invalid."""

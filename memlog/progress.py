@@ -7,7 +7,7 @@ import time
 from collections.abc import Iterable, Iterator
 from typing import Any, TypeVar
 
-__all__ = ["progress", "set_quiet", "is_quiet", "info"]
+__all__ = ["progress", "set_quiet", "info"]
 
 T = TypeVar("T")
 _QUIET = False
@@ -16,10 +16,6 @@ _QUIET = False
 def set_quiet(quiet: bool) -> None:
     global _QUIET
     _QUIET = quiet
-
-
-def is_quiet() -> bool:
-    return _QUIET
 
 
 def info(text: str) -> None:

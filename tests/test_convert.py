@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from memlog.convert import convert
-from memlog.errors import LogWriteError
+from memlog.steps.convert import convert
+from memlog.errors import OutputPathError
 from memlog.io import McapLogWriter, open_log
 from tests.conftest import FIXTURE_LOGS, FIXTURES, SHARED_LOGS, shared
 
@@ -150,5 +150,11 @@ def test_writer_adds_json_channels_next_to_passthrough(tmp_path: Path) -> None:
 def test_convert_refuses_to_overwrite_its_input(tmp_path: Path) -> None:
     src = tmp_path / "a.mcap"
     src.write_bytes((FIXTURES / "demo.mcap").read_bytes())
-    with pytest.raises(LogWriteError, match="overwrite the input"):
+    before = src.read_bytes()
+    with pytest.raises(OutputPathError, match="overwrite the input"):
         convert(src, src)
+    link = tmp_path / "link.mcap"
+    link.hardlink_to(src)  # another name for the same file
+    with pytest.raises(OutputPathError, match="overwrite the input"):
+        convert(src, link)
+    assert src.read_bytes() == before

@@ -143,4 +143,4 @@ def test_missing_file_and_usage_errors(tmp_path: Path) -> None:
     r = _cli("convert", str(FIXTURES / "demo.mcap"))
     assert r.returncode == 2  # -o is required
     r = _cli("convert", str(FIXTURES / "demo.mcap"), "-o", str(tmp_path / "missing_dir" / "x.mcap"))
-    assert r.returncode == 1 and "does not exist" in r.stderr
+    assert r.returncode == 2 and "does not exist" in r.stderr and not (tmp_path / "missing_dir").exists()

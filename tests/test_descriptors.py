@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -13,15 +12,17 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from memlog.descriptors import parquet as pqmod
-from memlog.descriptors.base import DESCRIBERS, DescriptorMeta, make_describer
-from memlog.descriptors.parquet import DescriptorTable, check_compatible, read_descriptors, write_descriptors
+from memlog.outputs import descriptor_table as pqmod
+from memlog.descriptors.base import DescriptorMeta, check_compatible
+from memlog.descriptors.registry import DESCRIBERS, make_describer
+from memlog.descriptors.table import DescriptorTable
+from memlog.outputs.descriptor_table import read_descriptors, write_descriptors
 from memlog.descriptors.thumbnail import ThumbnailDescriber
 from memlog.errors import DescriptorError, ModelError
-from memlog.evaluate.metrics import parse_truth, recall_at_n
-from memlog.localize.match import match
+from memlog.evaluation.metrics import parse_truth, recall_at_n
+from memlog.descriptors.search import match
+from tests.conftest import shared
 
-SHARED = Path(os.environ.get("MEMLOG_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 TOPIC = "/camera/image_raw/compressed"
 
 
@@ -31,7 +32,7 @@ def load_nordland(season: str, limit: int | None = None) -> list[np.ndarray]:
     from mcap_ros2.decoder import DecoderFactory
 
     out: list[np.ndarray] = []
-    with open(SHARED / f"nordland_dev_{season}.mcap", "rb") as fh:
+    with open(shared(f"nordland_dev_{season}.mcap"), "rb") as fh:
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
         for _schema, _channel, _message, msg in reader.iter_decoded_messages(topics=[TOPIC]):
             img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_COLOR)
@@ -95,7 +96,7 @@ def test_thumbnail_nordland_recall_at_1(summer: list[np.ndarray], winter: list[n
     # Chance level of R@1 is about 3/200; measured 0.225.
     n = 200
     d = make_describer("thumbnail")
-    truth = [s for s in parse_truth(SHARED / "nordland_dev_truth.json", 800, 800)[:n]]
+    truth = [s for s in parse_truth(shared("nordland_dev_truth.json"), 800, 800)[:n]]
     idx, _ = match(d.describe(winter[:n]), d.describe(summer[:n]), k=5)
     r = recall_at_n(idx, truth, ns=(1, 5))
     assert r[1] > 0.1 and r[5] >= r[1]
@@ -117,7 +118,7 @@ def test_registry_and_factory() -> None:
 
 @pytest.fixture(scope="session")
 def dinov2_model() -> Path:
-    from memlog.descriptors.dinov2 import prepare_dinov2
+    from memlog.models.dinov2 import prepare_dinov2
 
     return prepare_dinov2(quiet=True)
 
@@ -130,11 +131,11 @@ def dino(dinov2_model: Path) -> Any:
 def test_dinov2_model_prepared(dinov2_model: Path) -> None:
     import json
 
-    from memlog.descriptors.dinov2 import SOURCE_SHA256, TOKENS_OUTPUT, prepare_dinov2
+    from memlog.models.dinov2 import SOURCE_SHA256, TOKENS_OUTPUT, prepare_dinov2
     from memlog.models.fetch import sha256_file
 
     side = json.loads(dinov2_model.with_name(dinov2_model.name + ".json").read_text())
-    assert side["source"]["sha256"] == SOURCE_SHA256 and side["output"]["name"] == TOKENS_OUTPUT
+    assert side["source_sha256"] == SOURCE_SHA256 and side["output"]["name"] == TOKENS_OUTPUT
     assert side["sha256"] == sha256_file(dinov2_model)
     assert prepare_dinov2(quiet=True) == dinov2_model  # idempotent
     assert not [p for p in dinov2_model.parent.iterdir() if p.name.endswith(".tmp")]
@@ -163,7 +164,8 @@ def test_dinov2_tokens_match_original_model(dino: Any, summer: list[np.ndarray])
     import onnxruntime as ort
     from onnx import numpy_helper
 
-    from memlog.descriptors.dinov2 import preprocess, source_model_path
+    from memlog.descriptors.dinov2 import preprocess
+    from memlog.models.dinov2 import source_model_path
 
     src = source_model_path()
     assert src is not None
@@ -259,7 +261,7 @@ def test_parquet_round_trip(tmp_path: Path) -> None:
     assert set(back.positions) == {"lat", "lon"}
     np.testing.assert_array_equal(back.positions["lat"], t.positions["lat"])
     assert back.meta == t.meta and back.extra == t.extra
-    from memlog import __version__
+    from memlog._version import __version__
 
     assert back.memlog_version == __version__
     # Parquet-level view: nulls, fixed-size list, metadata
@@ -268,7 +270,7 @@ def test_parquet_round_trip(tmp_path: Path) -> None:
     assert raw.schema.field("descriptor").type == pa.list_(pa.float32(), 6)
     assert raw.schema.metadata[b"memlog.kind"] == b"thumbnail"
     assert raw.schema.metadata[b"memlog.dim"] == b"6"
-    check_compatible(back, t)
+    check_compatible(back.meta, t.meta)
 
 
 def test_parquet_refuses_incompatible(tmp_path: Path) -> None:
@@ -280,8 +282,8 @@ def test_parquet_refuses_incompatible(tmp_path: Path) -> None:
     with pytest.raises(DescriptorError, match="params"):
         check_compatible(a, DescriptorMeta("dinov2-cls", "1", 384, "198644e37de36674974f", {"pooling": "gem"}))
     with pytest.raises(DescriptorError, match="version"):
-        check_compatible(a.to_dict(), {**a.to_dict(), "version": "2"})
-    check_compatible(a, a.to_dict())
+        check_compatible(a, DescriptorMeta.from_dict({**a.to_dict(), "version": "2"}))
+    check_compatible(a, DescriptorMeta.from_dict(a.to_dict()))
     # a Parquet file that is not a descriptor table
     other = tmp_path / "other.parquet"
     pq.write_table(pa.table({"x": [1, 2]}), other)

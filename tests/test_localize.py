@@ -1,4 +1,4 @@
-"""Tests of memlog.localize.match: exact search against brute force, confidence, timing, output."""
+"""Tests of memlog.descriptors.search and memlog.outputs.matches: exact search against brute force, confidence, timing, output."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from memlog.errors import DescriptorError
-from memlog.localize.match import confidence, match, time_per_query, topk, write_matches
+from memlog.descriptors.search import confidence, match, time_per_query, topk
+from memlog.outputs.matches import write_matches
 
 
 def _unit(rng: np.random.Generator, n: int, d: int) -> np.ndarray:

@@ -7,7 +7,6 @@ no-op when the converted model is already cached), so these tests are never skip
 from __future__ import annotations
 
 import json
-import os
 import struct
 import time
 import zipfile
@@ -40,21 +39,19 @@ from memlog.models.resmem import (
     resnet_bn_layers,
 )
 from memlog.models.state_dict import load_state_dict
+from memlog.models.resmem import FRAME, crop_weights, crops_from_frame
 from memlog.scoring.memorability import (
     FastMemorability,
-    FRAME,
     Memorability,
-    crop_weights,
-    crops_from_frame,
     memorability_map,
     memorability_matrix,
     memorability_score,
 )
+from tests.conftest import shared
 
 Array = npt.NDArray[Any]
 SD = dict[str, Array]
 
-DATA = Path(os.environ.get("MEMLOG_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 pytestmark = pytest.mark.shared
 
 
@@ -65,7 +62,7 @@ pytestmark = pytest.mark.shared
 def _frames(name: str, topic: str, indices: set[int]) -> dict[int, Array]:
     """Decode CompressedImage messages ``indices`` of ``topic`` of a ROS 2 MCAP to 1135x1135 BGR."""
     out: dict[int, Array] = {}
-    with open(DATA / name, "rb") as fh:
+    with open(shared(name), "rb") as fh:
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
         for i, (_s, _c, _m, msg) in enumerate(reader.iter_decoded_messages(topics=[topic], log_time_order=True)):
             if i in indices:
@@ -201,10 +198,10 @@ def test_expected_shapes_match_real_state_dict(state_dict: SD) -> None:
 
 
 def test_sidecar_records_hashes(onnx_path: Path) -> None:
-    side = json.loads(onnx_path.with_suffix(".json").read_text())
-    assert side["source_package"] == "resmem" and side["source_version"] == "1.1.6"
+    side = json.loads(onnx_path.with_name(onnx_path.name + ".json").read_text())
+    assert side["source"]["package"] == "resmem" and side["source"]["version"] == "1.1.6"
     assert side["source_sha256"] == sha256_file(locate_resmem_weights())
-    assert side["onnx_sha256"] == sha256_file(onnx_path)
+    assert side["sha256"] == sha256_file(onnx_path) and side["bytes"] == onnx_path.stat().st_size
     assert side["opset"] == resmem.OPSET and side["converter_version"] == resmem.CONVERTER_VERSION
     assert resmem_onnx_path() == onnx_path
 
@@ -401,11 +398,11 @@ def test_crops_from_frame_layout_and_errors(frames: list[Array]) -> None:
         r, c = divmod(k, 5)
         ref = f[r * 227:(r + 1) * 227, c * 227:(c + 1) * 227, ::-1].transpose(2, 0, 1) / 255.0
         assert np.array_equal(crops[k], ref.astype(np.float32))
-    with pytest.raises(ScoringError, match="1135x1135x3"):
+    with pytest.raises(ModelError, match="1135x1135x3"):
         crops_from_frame(f[:-1])
-    with pytest.raises(ScoringError, match="uint8"):
+    with pytest.raises(ModelError, match="uint8"):
         crops_from_frame(f.astype(np.float32))
-    with pytest.raises(ScoringError, match="1135x1135x3"):
+    with pytest.raises(ModelError, match="1135x1135x3"):
         crops_from_frame(f[:, :, 0])
 
 
@@ -491,11 +488,11 @@ def test_static_map_and_matrix_errors(scorer: Memorability, frames: list[Array])
         memorability_score(np.zeros((4, 5)))
     with pytest.raises(ScoringError, match="non-finite"):
         memorability_score(np.full((5, 5), np.nan))
-    with pytest.raises(ScoringError, match="1135x1135"):
+    with pytest.raises(ModelError, match="1135x1135"):
         memorability_score(m, np.ones((100, 100)))
-    with pytest.raises(ScoringError, match="0..1"):
+    with pytest.raises(ModelError, match="0..1"):
         memorability_score(m, np.full((FRAME, FRAME), 2.0))
-    with pytest.raises(ScoringError, match=r"\[N,3,227,227\]"):
+    with pytest.raises(ModelError, match=r"\[N,3,227,227\]"):
         scorer.score_crops(np.zeros((1, 227, 227, 3), np.float32))
     assert memorability_score(m) == pytest.approx(0.5)
     assert memorability_score(m, np.zeros((FRAME, FRAME))) == 0.0

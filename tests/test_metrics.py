@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from memlog.errors import EvaluationError
-from memlog.evaluate.metrics import (
+from memlog.evaluation.metrics import (
     auc_pr_trapezoid,
     coverage,
     evaluate_map_only,
@@ -23,9 +22,9 @@ from memlog.evaluate.metrics import (
     recall_at_n,
     truth_from_positions,
 )
-from memlog.localize.match import match
+from memlog.descriptors.search import match
+from tests.conftest import shared
 
-SHARED = Path(os.environ.get("MEMLOG_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
 # ---------------------------------------------------------------- AUC (paper eq. 2)
@@ -232,7 +231,7 @@ def test_protocols_accept_match_output() -> None:
 # ---------------------------------------------------------------- truth parsing
 
 def test_parse_truth_nordland_file() -> None:
-    path = SHARED / "nordland_dev_truth.json"
+    path = shared("nordland_dev_truth.json")
     truth = parse_truth(path, n_query=800, n_ref=800)
     assert len(truth) == 800
     assert truth[0] == {0, 1} and truth[5] == {4, 5, 6} and truth[799] == {798, 799}

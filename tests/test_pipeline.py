@@ -12,16 +12,18 @@ import jsonschema
 import numpy as np
 import pytest
 
-from memlog.config import ScoreConfig, load_config
-from memlog.descriptors.parquet import read_descriptors
 from memlog.errors import ConfigError
-from memlog.evaluate.pipeline import EvalOptions, evaluate
-from memlog.io import open_log
+from memlog.io import FrameWindow, open_log
 from memlog.io.positions import read_track
-from memlog.localize.pipeline import localize
-from memlog.mapping import EmptyMapError, make_map
-from memlog.schemas import SCHEMAS
-from memlog.score import read_scores, score_log
+from memlog.outputs.annotated import read_scores
+from memlog.outputs.descriptor_table import read_descriptors
+from memlog.outputs.schemas import SCHEMAS
+from memlog.scoring.config import ScoreConfig, load_config
+from memlog.selection.config import SelectionConfig
+from memlog.steps.evaluate import EvaluateConfig, evaluate
+from memlog.steps.localize import LocalizeConfig, localize
+from memlog.steps.map import EmptyMapError, MapConfig, make_map
+from memlog.steps.score import score
 from tests.conftest import FIXTURES
 
 DEMO = FIXTURES / "demo.mcap"
@@ -33,7 +35,7 @@ RAW = "/camera/image_raw"
 def all_scored(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """demo.mcap, compressed topic, every score of every frame (shared by the tests below)."""
     out = tmp_path_factory.mktemp("scored") / "reference.scored.mcap"
-    score_log(DEMO, out, ScoreConfig(all_scores=True), topics=[COMP])
+    score(DEMO, out, ScoreConfig(all_scores=True), FrameWindow((COMP,)))
     return out
 
 
@@ -47,8 +49,8 @@ def test_map_with_fixed_thresholds(all_scored: Path, tmp_path: Path) -> None:
     want = [r["frame_index"] for r in recs if _passes(r, **th)]
     assert 0 < len(want) < len(recs), "fixture should keep some frames and drop others at these thresholds"
     out = tmp_path / "map.mcap"
-    res = make_map(DEMO, out, ScoreConfig(**th), scores=all_scored, topics=[COMP], keep_topics=["/gps/fix"],
-                   mode="paper")
+    res = make_map(DEMO, out, MapConfig(select=SelectionConfig(mode="paper", **th), topics=(COMP,),
+                                        keep_topics=("/gps/fix",)), scores=all_scored)
     assert res.frames_kept == len(want) and res.frames_in == len(recs)
     with open_log(DEMO) as src, open_log(out) as m:
         kept = list(m.frames([COMP]))
@@ -67,17 +69,18 @@ def test_map_with_fixed_thresholds(all_scored: Path, tmp_path: Path) -> None:
 
 def test_map_keep_fraction_and_raw_topic_reencoded(all_scored: Path, tmp_path: Path) -> None:
     out = tmp_path / "map.mcap"
-    res = make_map(DEMO, out, ScoreConfig(), scores=all_scored, topics=[COMP], keep_fraction=0.5, mode="paper")
+    res = make_map(DEMO, out, MapConfig(select=SelectionConfig(mode="paper", keep_fraction=0.5), topics=(COMP,)),
+                   scores=all_scored)
     assert 3 <= res.frames_kept <= 5
     th = res.thresholds
     recs = read_scores(all_scored)[COMP]
     assert res.frames_kept == sum(_passes(r, th["mt"], th["st"], th["et"]) for r in recs)
     # a raw topic becomes CompressedImage (JPEG) on T/compressed; pixels close to the source
     raw_scored = tmp_path / "raw.scored.mcap"
-    score_log(FIXTURES / "ros2idl.mcap", raw_scored, ScoreConfig(all_scores=True))
+    score(FIXTURES / "ros2idl.mcap", raw_scored, ScoreConfig(all_scores=True))
     out2 = tmp_path / "raw_map.mcap"
-    make_map(FIXTURES / "ros2idl.mcap", out2, ScoreConfig(mt=0, st=0, et=0), scores=raw_scored, image_format="png",
-             mode="paper")
+    make_map(FIXTURES / "ros2idl.mcap", out2,
+             MapConfig(select=SelectionConfig(mode="paper", mt=0, st=0, et=0), image_format="png"), scores=raw_scored)
     with open_log(out2) as m, open_log(FIXTURES / "ros2idl.mcap") as src:
         got = list(m.frames(["/camera/image_raw/compressed"]))
         ref = list(src.frames())
@@ -89,8 +92,8 @@ def test_map_keep_fraction_and_raw_topic_reencoded(all_scored: Path, tmp_path: P
 
 def test_empty_map_is_an_error_that_suggests_keep_fraction(all_scored: Path, tmp_path: Path) -> None:
     with pytest.raises(EmptyMapError, match="--keep-fraction"):
-        make_map(DEMO, tmp_path / "m.mcap", ScoreConfig(mt=0.99, st=0.99, et=0.99), scores=all_scored, topics=[COMP],
-                 mode="paper")
+        make_map(DEMO, tmp_path / "m.mcap", MapConfig(select=SelectionConfig(mode="paper", mt=0.99, st=0.99, et=0.99),
+                                                      topics=(COMP,)), scores=all_scored)
     assert not (tmp_path / "m.mcap").exists()
     r = subprocess.run([sys.executable, "-m", "memlog", "map", str(DEMO), "-o", str(tmp_path / "m.mcap"),
                         "--scores", str(all_scored), "-t", COMP, "--et", "0.99", "--select", "paper"], capture_output=True, text=True)
@@ -99,18 +102,19 @@ def test_empty_map_is_an_error_that_suggests_keep_fraction(all_scored: Path, tmp
 
 def test_early_exit_scores_refused_for_calibration(tmp_path: Path) -> None:
     scored = tmp_path / "s.mcap"
-    score_log(FIXTURES / "ros1.mcap", scored, ScoreConfig())
+    score(FIXTURES / "ros1.mcap", scored, ScoreConfig())
     with pytest.raises(ConfigError, match="all-scores"):
-        make_map(FIXTURES / "ros1.mcap", tmp_path / "m.mcap", scores=scored, keep_fraction=0.5, mode="paper")
+        make_map(FIXTURES / "ros1.mcap", tmp_path / "m.mcap",
+                 MapConfig(select=SelectionConfig(mode="paper", keep_fraction=0.5)), scores=scored)
 
 
 def test_localize_finds_the_same_place(all_scored: Path, tmp_path: Path) -> None:
     """Map = every compressed frame; queries = the raw frames of the same images: best match = same index."""
-    res = make_map(DEMO, tmp_path / "map.mcap", ScoreConfig(mt=0, st=0, et=0), scores=all_scored, topics=[COMP],
-                   mode="paper")
+    res = make_map(DEMO, tmp_path / "map.mcap", MapConfig(select=SelectionConfig(mode="paper", mt=0, st=0, et=0),
+                                                          topics=(COMP,)), scores=all_scored)
     assert res.frames_kept == 8
-    loc = localize(res.descriptors, DEMO, tmp_path / "matches.csv", k=3, topics=[RAW],  # type: ignore[arg-type]
-                   annotate=tmp_path / "q.mcap")
+    loc = localize(res.descriptors, DEMO, tmp_path / "matches.csv",  # type: ignore[arg-type]
+                   LocalizeConfig(k=3, window=FrameWindow((RAW,))), annotate=tmp_path / "q.mcap")
     import pyarrow.csv as pacsv
 
     t = pacsv.read_csv(tmp_path / "matches.csv")
@@ -133,8 +137,8 @@ def test_evaluate_end_to_end(all_scored: Path, tmp_path: Path) -> None:
     shutil.copyfile(all_scored, out / "reference.scored.mcap")  # reused: same settings
     truth = tmp_path / "truth.json"
     truth.write_text(json.dumps({"matches": [[i] for i in range(8)]}))
-    res = evaluate(DEMO, DEMO, out, ScoreConfig(), truth=truth,
-                   options=EvalOptions(keep_fraction=0.5, reference_topic=COMP, query_topic=RAW, seeds=5))
+    res = evaluate(DEMO, DEMO, out, EvaluateConfig(select=SelectionConfig(keep_fraction=0.5), reference_topic=COMP,
+                                                   query_topic=RAW, seeds=5), truth=truth)
     saved = json.loads((out / "results.json").read_text())
     for name in ("full", "memorable", "uniform", "random"):
         for key in ("frames", "coverage", "auc", "recall@1", "recall@5", "recall@10", "match_seconds_per_query"):

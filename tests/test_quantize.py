@@ -38,14 +38,8 @@ from memlog.models.quantize import (
     resmem_int8_path,
     validation_crops,
 )
-from memlog.models.resmem import FEATURES_NAME, INPUT_NAME, OUTPUT_NAME, prepare_resmem
-from memlog.scoring.memorability import (
-    FRAME,
-    FastMemorability,
-    Memorability,
-    crops_from_frame,
-    memorability_score,
-)
+from memlog.models.resmem import FEATURES_NAME, FRAME, INPUT_NAME, OUTPUT_NAME, crops_from_frame, prepare_resmem
+from memlog.scoring.memorability import FastMemorability, Memorability, memorability_score
 from tests.conftest import shared
 
 Array = npt.NDArray[Any]
@@ -187,11 +181,11 @@ def test_memorability_scorer_runs_int8(int8_path: Path, frames: list[Array]) -> 
 
 
 def test_sidecar_hashes_match_files(fp32_path: Path, int8_path: Path) -> None:
-    side = json.loads(int8_path.with_suffix(".json").read_text())
+    side = json.loads(int8_path.with_name(int8_path.name + ".json").read_text())
     assert side["quantizer_version"] == QUANTIZER_VERSION
     assert side["source_onnx_sha256"] == sha256_file(fp32_path)
-    assert side["int8_sha256"] == sha256_file(int8_path)
-    assert side["int8_bytes"] == int8_path.stat().st_size
+    assert side["sha256"] == sha256_file(int8_path)
+    assert side["bytes"] == int8_path.stat().st_size
     assert side["settings"] == json.loads(json.dumps(SETTINGS))
     cal = side["calibration"]
     assert cal["images"] == list(CALIBRATION_IMAGES[:len(cal["images"])])
@@ -201,7 +195,7 @@ def test_sidecar_hashes_match_files(fp32_path: Path, int8_path: Path) -> None:
 def test_sidecar_records_error_bounds(int8_path: Path, fp32_path: Path) -> None:
     """The bounds are the measured maxima on held-out crops times the factor, and those crops
     are what validation_crops produces here, none of them a calibration crop."""
-    side = json.loads(int8_path.with_suffix(".json").read_text())
+    side = json.loads(int8_path.with_name(int8_path.name + ".json").read_text())
     err = side["crop_error"]
     assert 0.0 < err["mean"] <= err["p99"] <= err["max"] < 0.5
     assert 0.0 < err["frame_mean"] <= err["frame_max"] <= err["max"]
@@ -238,7 +232,7 @@ def test_fast_scorer_agrees_with_exact(int8_path: Path, fp32_path: Path, frames:
 
 def test_fast_mode_scorer_records(int8_path: Path, frames: list[Array]) -> None:
     """Scorer(mode='fast'): same decision as exact mode, surrogate crops recorded."""
-    from memlog.config import ScoreConfig
+    from memlog.scoring.config import ScoreConfig
     from memlog.scoring.scorer import Scorer
 
     exact = Scorer(ScoreConfig(mt=0.0, st=0.0, et=0.0, all_scores=True)).score(frames[2])
@@ -256,7 +250,7 @@ def test_fast_mode_scorer_records(int8_path: Path, frames: list[Array]) -> None:
 
 def test_calibration_set_matches_sidecar(int8_path: Path) -> None:
     """The cached model was calibrated on exactly what calibration_crops produces here."""
-    cal = json.loads(int8_path.with_suffix(".json").read_text())["calibration"]
+    cal = json.loads(int8_path.with_name(int8_path.name + ".json").read_text())["calibration"]
     crops = calibration_crops(len(cal["images"]))
     assert quantize._crops_sha256(crops) == cal["crops_sha256"]
 
@@ -318,21 +312,23 @@ def test_stale_model_raises(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fp3
     models = tmp_path / "models"
     models.mkdir()
     # the fp32 model "prepared" in the temporary cache: a link plus its real sidecar
+    side = fp32_path.with_name(fp32_path.name + ".json")
     (models / fp32_path.name).symlink_to(fp32_path)
-    (models / fp32_path.with_suffix(".json").name).write_text(fp32_path.with_suffix(".json").read_text())
-    src_sha = json.loads(fp32_path.with_suffix(".json").read_text())["onnx_sha256"]
+    (models / side.name).write_text(side.read_text())
+    src_sha = json.loads(side.read_text())["sha256"]
     target = models / "resmem-1.1.6-int8.onnx"
     target.write_bytes(b"not a model but the right size")
-    good = {"quantizer_version": QUANTIZER_VERSION, "source_onnx_sha256": src_sha, "int8_bytes": target.stat().st_size,
-            "cpu_vnni": quantize.cpu_has_vnni()}
+    target_side = target.with_name(target.name + ".json")
+    good = {"format": 2, "quantizer_version": QUANTIZER_VERSION, "source_onnx_sha256": src_sha,
+            "bytes": target.stat().st_size, "cpu_vnni": quantize.cpu_has_vnni()}
     monkeypatch.setenv("MEMLOG_CACHE_DIR", str(tmp_path))
-    target.with_suffix(".json").write_text(json.dumps(good))
+    target_side.write_text(json.dumps(good))
     assert resmem_int8_path() == target  # the cheap check accepts a matching sidecar
-    for key, bad in (("quantizer_version", "0"), ("source_onnx_sha256", "0" * 64), ("int8_bytes", 1),
+    for key, bad in (("quantizer_version", "0"), ("source_onnx_sha256", "0" * 64), ("bytes", 1), ("format", 1),
                      ("cpu_vnni", not quantize.cpu_has_vnni())):  # built for another kind of CPU
-        target.with_suffix(".json").write_text(json.dumps({**good, key: bad}))
+        target_side.write_text(json.dumps({**good, key: bad}))
         with pytest.raises(ModelError, match="memlog models prepare"):
             resmem_int8_path()
-    target.with_suffix(".json").unlink()
+    target_side.unlink()
     with pytest.raises(ModelError, match="memlog models prepare"):
         resmem_int8_path()

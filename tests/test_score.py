@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from memlog.config import ScoreConfig
-from memlog.io import open_log
-from memlog.schemas import SCHEMAS, schema_bytes
-from memlog.score import read_scores, run_config, score_log
+from memlog.io import FrameWindow, open_log
+from memlog.outputs.annotated import read_scores, run_config
+from memlog.outputs.schemas import SCHEMAS, schema_bytes
+from memlog.scoring.config import ScoreConfig
 from memlog.scoring.scorer import Scorer, resize_frame
+from memlog.steps.score import score
 from tests.conftest import FIXTURE_LOGS, FIXTURES, ROOT
 
 
@@ -38,7 +39,7 @@ def _records(path: Path) -> list[tuple]:
 def test_schema_files_are_up_to_date() -> None:
     for name in SCHEMAS:
         assert (ROOT / "schemas" / f"{name}.json").read_bytes() == schema_bytes(name), (
-            f"schemas/{name}.json is stale: run python -m memlog.schemas schemas"
+            f"schemas/{name}.json is stale: run python -m memlog.outputs.schemas schemas"
         )
 
 
@@ -46,7 +47,7 @@ def test_schema_files_are_up_to_date() -> None:
 def test_annotated_mcap_keeps_input_and_validates(name: str, tmp_path: Path, scorer: Scorer) -> None:
     out = tmp_path / "scored.mcap"
     stride = 3 if name == "demo.mcap" else 1
-    run = score_log(FIXTURES / name, out, scorer.config, scorer=scorer, stride=stride)
+    run = score(FIXTURES / name, out, scorer.config, FrameWindow(stride=stride), scorer=scorer)
     with open_log(FIXTURES / name) as log:
         cams = log.camera_topics()
         want = sorted((m.channel.topic, m.log_time, m.publish_time, m.sequence, m.data) for m in log.messages())
@@ -146,7 +147,7 @@ def test_maps_channels(tmp_path: Path, scorer: Scorer) -> None:
     cfg = ScoreConfig(maps=True)
     sc = Scorer(cfg, memorability=scorer.memorability, staticity=scorer.staticity)
     out = tmp_path / "maps.mcap"
-    score_log(FIXTURES / "ros2idl.mcap", out, cfg, scorer=sc)
+    score(FIXTURES / "ros2idl.mcap", out, cfg, scorer=sc)
     with open_log(out) as log:
         topics = set(log.topics())
         assert {"/camera/image_raw/memlog/maps/staticity", "/camera/image_raw/memlog/maps/entropy"} <= topics

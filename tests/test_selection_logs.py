@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from memlog.config import ScoreConfig
 from memlog.errors import ConfigError, MemlogError
 from memlog.io import McapLogWriter, open_log
 from memlog.io.positions import read_track
-from memlog.mapping import make_map
+from memlog.selection.config import SelectionConfig
+from memlog.steps.map import MapConfig, make_map
 from tests.conftest import FIXTURES
 
 DEMO = FIXTURES / "demo.mcap"
@@ -40,8 +40,8 @@ def _kept(path: Path, topic: str) -> list[int]:
 def test_segments_by_distance_keep_one_frame_per_stretch(tmp_path: Path) -> None:
     ms = [0.9, 0.1, 0.2, 0.8, 0.3, 0.95, 0.4, 0.6]
     recs = _records(DEMO, COMP, ms)
-    res = make_map(DEMO, tmp_path / "m.mcap", ScoreConfig(), scores=recs, topics=[COMP], mode="segment",
-                   keep_fraction=0.5, segment={"by": "distance"}, descriptor=None)
+    cfg = MapConfig(select=SelectionConfig(keep_fraction=0.5, segment_by="distance"), topics=(COMP,), descriptor=None)
+    res = make_map(DEMO, tmp_path / "m.mcap", cfg, scores=recs)
     kept = _kept(tmp_path / "m.mcap", COMP)
     info = res.selections[COMP].info
     assert info["by"] == "distance" and info["n_segments"] == 4
@@ -62,8 +62,8 @@ def test_segments_by_distance_keep_one_frame_per_stretch(tmp_path: Path) -> None
 
 def test_segments_by_time(tmp_path: Path) -> None:
     recs = _records(DEMO, COMP, [0.5 + 0.05 * i for i in range(8)])
-    make_map(DEMO, tmp_path / "m.mcap", ScoreConfig(), scores=recs, topics=[COMP], mode="segment",
-             segment={"by": "time", "spacing_s": 0.4}, descriptor=None)
+    cfg = MapConfig(select=SelectionConfig(segment_by="time", spacing_s=0.4), topics=(COMP,), descriptor=None)
+    make_map(DEMO, tmp_path / "m.mcap", cfg, scores=recs)
     kept = _kept(tmp_path / "m.mcap", COMP)
     # frames every 0.1 s: windows [0,0.4) and [0.4,0.8): the best (latest, highest MS) of each
     assert kept == [3, 7]
@@ -72,8 +72,8 @@ def test_segments_by_time(tmp_path: Path) -> None:
 def test_segments_by_view_change_and_gap(tmp_path: Path) -> None:
     recs = _records(DEMO, COMP, [0.5] * 8)
     recs[COMP][2]["ss"] = 0.0  # a frame that fails the minimums
-    res = make_map(DEMO, tmp_path / "m.mcap", ScoreConfig(), scores=recs, topics=[COMP], mode="segment",
-                   segment={"by": "view", "view_distance": 0.3}, descriptor=None)
+    cfg = MapConfig(select=SelectionConfig(segment_by="view", view_distance=0.3), topics=(COMP,), descriptor=None)
+    res = make_map(DEMO, tmp_path / "m.mcap", cfg, scores=recs)
     sel = res.selections[COMP]
     # every fixture photo differs from the next, so each frame starts its own view segment
     assert sel.segment_id is not None and len(set(sel.segment_id.tolist())) == 8
@@ -95,8 +95,9 @@ def test_redundancy_filter_drops_stops_and_loops(tmp_path: Path) -> None:
     log = tmp_path / "loop.mcap"
     _repeating_log(log)
     recs = _records(log, COMP, [0.9] * 8)
-    res = make_map(log, tmp_path / "m.mcap", ScoreConfig(mt=0.5, st=0.5, et=0.4), scores=recs, topics=[COMP],
-                   dedup_distance=0.05, descriptor=None, mode="paper")
+    cfg = MapConfig(select=SelectionConfig(mode="paper", mt=0.5, st=0.5, et=0.4, dedup=0.05), topics=(COMP,),
+                    descriptor=None)
+    res = make_map(log, tmp_path / "m.mcap", cfg, scores=recs)
     sel = res.selections[COMP]
     assert _kept(tmp_path / "m.mcap", COMP) == [0, 1, 4, 5]
     assert sel.duplicates == {2: 1, 3: 1, 6: 0, 7: 1}
@@ -108,8 +109,7 @@ def test_short_and_empty_logs(tmp_path: Path) -> None:
         m = next(log.messages([COMP]))
         w.write_raw(m)
     recs = _records(one, COMP, [0.9])
-    res = make_map(one, tmp_path / "m1.mcap", ScoreConfig(), scores=recs, mode="segment", keep_fraction=0.5,
-                   descriptor="thumbnail")
+    res = make_map(one, tmp_path / "m1.mcap", MapConfig(select=SelectionConfig(keep_fraction=0.5)), scores=recs)
     assert res.frames_kept == 1 and res.descriptors is not None
     # a log without camera frames: a clear error, no output
     gps_only = tmp_path / "gps.mcap"
@@ -117,7 +117,9 @@ def test_short_and_empty_logs(tmp_path: Path) -> None:
         for m in log.messages(["/gps/fix"]):
             w.write_raw(m)
     with pytest.raises(MemlogError):
-        make_map(gps_only, tmp_path / "m2.mcap", ScoreConfig(), scores={}, mode="segment", keep_fraction=0.5)
+        make_map(gps_only, tmp_path / "m2.mcap", MapConfig(select=SelectionConfig(keep_fraction=0.5)), scores={})
     assert not (tmp_path / "m2.mcap").exists()
     with pytest.raises(ConfigError):
-        make_map(DEMO, tmp_path / "m3.mcap", ScoreConfig(), scores=_records(DEMO, COMP, [0.5] * 8), mode="bogus")
+        SelectionConfig(mode="bogus")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="segment"):
+        SelectionConfig(mode="paper", spacing_m=5.0)

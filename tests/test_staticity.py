@@ -12,7 +12,7 @@ import numpy.typing as npt
 import pytest
 import skimage.data
 
-from memlog.config import DYNAMIC_CLASS_NAMES
+from memlog.scoring.config import DYNAMIC_CLASS_NAMES
 from memlog.errors import ModelError, ScoringError
 from memlog.models import detector as detmod
 from memlog.models.detector import COCO_LABELS, detector_info, load_detector, locate_detector_files

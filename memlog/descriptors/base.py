@@ -1,17 +1,16 @@
-"""The descriptor interface, the registry of named descriptor configurations and a factory.
+"""The descriptor interface and the metadata that travels with descriptors.
 
 A *describer* turns images into global descriptors: one L2-normalised float32 row per image.
-Named configurations (hloc style) live in :data:`DESCRIBERS`; :func:`make_describer` builds a
-describer from a name plus keyword overrides. The metadata of a describer
-(:class:`DescriptorMeta`) travels with the descriptors (Parquet schema metadata) so that a map
-and a query described differently are refused instead of silently compared.
+The metadata of a describer (:class:`DescriptorMeta`) travels with the descriptors (Parquet
+schema metadata) so that a map and a query described differently are refused
+(:func:`check_compatible`) instead of silently compared. Named configurations and the factory
+are in :mod:`memlog.descriptors.registry`.
 """
 
 from __future__ import annotations
 
-import copy
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -23,8 +22,7 @@ from memlog.errors import DescriptorError
 __all__ = [
     "Describer",
     "DescriptorMeta",
-    "DESCRIBERS",
-    "make_describer",
+    "check_compatible",
     "l2_normalize",
     "as_bgr_list",
 ]
@@ -52,6 +50,33 @@ class DescriptorMeta:
         """JSON-ready dict."""
         return asdict(self)
 
+    @classmethod
+    def from_dict(cls, m: Mapping[str, Any]) -> "DescriptorMeta":
+        """Inverse of :meth:`to_dict`."""
+        return cls(kind=str(m["kind"]), version=str(m["version"]), dim=int(m["dim"]),
+                   model_sha256=m.get("model_sha256"), params=dict(m.get("params") or {}))
+
+    def describe(self) -> str:
+        """One line for messages: kind, version, size, model hash and parameters."""
+        sha = f"sha256 {self.model_sha256[:12]}…" if self.model_sha256 else "no model"
+        params = ", ".join(f"{k}={v}" for k, v in sorted(self.params.items()))
+        return f"{self.kind} v{self.version} ({self.dim}-d, {sha}{'; ' + params if params else ''})"
+
+
+def check_compatible(map_meta: DescriptorMeta, query_meta: DescriptorMeta) -> None:
+    """Raise :class:`DescriptorError` unless both were made by the same describer.
+
+    Compares kind, version, dim, model sha256 and params, e.g. "map built with dinov2-cls v1
+    (384-d, sha256 198644e37de3…), query described with thumbnail v1 (2048-d, no model)".
+    """
+    fields = ("kind", "version", "dim", "model_sha256", "params")
+    diff = [f for f in fields if getattr(map_meta, f) != getattr(query_meta, f)]
+    if diff:
+        raise DescriptorError(
+            f"map built with {map_meta.describe()}, query described with {query_meta.describe()}: "
+            f"{', '.join(diff)} differ; describe both with the same descriptor"
+        )
+
 
 class Describer(ABC):
     """Computes global image descriptors: ``describe(images) -> [N, dim]`` float32, unit rows."""
@@ -77,56 +102,6 @@ class Describer(ABC):
     def meta(self) -> DescriptorMeta:
         """The metadata recorded next to descriptors made by this describer."""
         return DescriptorMeta(self.kind, self.version, self.dim, self.model_sha256, dict(self.params))
-
-
-#: Named descriptor configurations. ``"class"`` picks the implementation, the other keys are
-#: its constructor arguments (overridable in :func:`make_describer`).
-DESCRIBERS: dict[str, dict[str, Any]] = {
-    "thumbnail": {
-        "class": "thumbnail",
-        "width": 64,
-        "height": 32,
-        "patch": 8,
-    },
-    "dinov2-cls": {
-        "class": "dinov2",
-        "pooling": "cls",
-        "resize": "stretch",
-        "batch_size": 16,
-    },
-    "dinov2-gem": {
-        "class": "dinov2",
-        "pooling": "gem",
-        "gem_p": 3.0,
-        "resize": "stretch",
-        "batch_size": 16,
-    },
-}
-
-
-def make_describer(name: str, **overrides: Any) -> Describer:
-    """Build the describer registered as ``name`` in :data:`DESCRIBERS`, with ``overrides``.
-
-    Raises :class:`DescriptorError` for an unknown name or parameter. A dinov2 describer raises
-    :class:`~memlog.errors.ModelError` when its model has not been prepared.
-    """
-    if name not in DESCRIBERS:
-        raise DescriptorError(f"unknown descriptor {name!r}; known: {', '.join(sorted(DESCRIBERS))}")
-    conf = copy.deepcopy(DESCRIBERS[name])
-    cls_name = conf.pop("class")
-    conf.update(overrides)
-    try:
-        if cls_name == "thumbnail":
-            from memlog.descriptors.thumbnail import ThumbnailDescriber
-
-            return ThumbnailDescriber(kind=name, **conf)
-        if cls_name == "dinov2":
-            from memlog.descriptors.dinov2 import DinoV2Describer
-
-            return DinoV2Describer(kind=name, **conf)
-    except TypeError as exc:  # unexpected keyword
-        raise DescriptorError(f"bad parameters for descriptor {name!r}: {exc}") from None
-    raise DescriptorError(f"descriptor {name!r} names unknown implementation {cls_name!r}")
 
 
 def l2_normalize(x: npt.NDArray[Any], eps: float = 1e-12) -> F32:

@@ -1,24 +1,29 @@
 """Describe the frames of a log and package them as a :class:`DescriptorTable`.
 
-Shared by ``memlog map`` (reference descriptors of the kept frames) and ``memlog localize``
-(query descriptors): frames stream in batches, so memory stays bounded.
+Shared by ``memlog map`` (reference descriptors of the kept frames), ``memlog localize`` (query
+descriptors) and ``memlog evaluate``: frames stream in batches, so memory stays bounded.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
 
 from memlog.descriptors.base import Describer
-from memlog.descriptors.parquet import DescriptorTable
+from memlog.descriptors.table import DescriptorTable
 from memlog.errors import ImageDecodeError
-from memlog.io.base import LogReader
-from memlog.io.positions import PositionTrack
-from memlog.io.types import Frame
+from memlog.io.base import FrameWindow, LogReader
+from memlog.io.frame import Frame
+from memlog.io.identity import log_identity
+from memlog.io.open import open_log
+from memlog.io.positions import PositionTrack, read_track
+from memlog.io.records import ReadReport
+from memlog.progress import progress
 
-__all__ = ["describe_frames", "build_table"]
+__all__ = ["describe_frames", "build_table", "describe_log"]
 
 
 def _batches(frames: Iterable[Frame], n: int) -> Iterator[list[Frame]]:
@@ -97,3 +102,27 @@ def build_table(
         positions=positions,
         extra=ex,
     )
+
+
+def describe_log(
+    log: str | os.PathLike[str],
+    describer: Describer,
+    window: FrameWindow | None = None,
+    *,
+    scores: Mapping[str, Mapping[int, Mapping[str, Any]]] | None = None,
+) -> tuple[DescriptorTable, ReadReport]:
+    """Descriptors of the frames of ``window`` (default: the first camera topic, every frame),
+    with positions when the log has them, and the read report (damage found). The table's
+    ``extra`` records the log, its identity and the window."""
+    window = window or FrameWindow()
+    with open_log(log) as reader:
+        cams = reader.check_camera_topics(window.topics)
+        if window.topics is None:
+            cams = cams[:1]  # one camera per drive unless asked
+        w = FrameWindow(tuple(cams), window.start_ns, window.end_ns, window.stride)
+        track = read_track(reader)
+        frames = progress(reader.frames(w.topics, w.start_ns, w.end_ns, w.stride), total=reader.count_frames(w),
+                          desc="describe", unit="frame")
+        kept, desc = describe_frames(frames, describer, reader)
+        extra = {"log": str(reader.path), "log_identity": log_identity(log), "window": w.to_dict()}
+        return build_table(kept, desc, describer, scores=scores, track=track, extra=extra), reader.report

@@ -1,7 +1,15 @@
-"""Atomic output files: write to a temporary name beside the target, rename when complete.
+"""Atomic output files and the output-path rules every memlog command follows.
 
-An interrupted run never leaves a half-written file under the final name, and an existing
-file there stays untouched until the new one is complete.
+Every file memlog writes goes through :class:`AtomicFile`: the data goes to a temporary file
+beside the target (``.<name>.<random>.tmp``), which is fsynced, given the normal file mode and
+renamed over the target only when complete. An interrupted run never leaves a half-written
+file under the final name, and an existing file there stays untouched until the new one is
+complete.
+
+Output paths (:func:`check_output`): memlog creates the output itself (a file, or the output
+directory of ``evaluate``/``batch``) but never a missing parent directory, and an output may
+never be one of the command's inputs (compared by resolved path and by ``os.path.samefile``,
+so hard links, symlinks and ``./x`` vs ``x`` are caught).
 """
 
 from __future__ import annotations
@@ -9,10 +17,16 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from types import TracebackType
+from typing import BinaryIO
 
-__all__ = ["atomic_output", "write_bytes_atomic", "file_mode"]
+from memlog.errors import LogWriteError, OutputPathError
+
+__all__ = ["AtomicFile", "atomic_output", "write_bytes_atomic", "file_mode", "check_output", "same_path"]
+
+PathLike = str | os.PathLike[str]
 
 
 def file_mode() -> int:
@@ -22,33 +36,131 @@ def file_mode() -> int:
     return 0o666 & ~mask
 
 
-@contextlib.contextmanager
-def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; rename it to ``path`` if the block succeeds.
-
-    On any exception the temporary file is removed and ``path`` is left untouched.
-    """
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
+def same_path(a: PathLike, b: PathLike) -> bool:
+    """Whether ``a`` and ``b`` name the same file or directory (resolved path, or samefile)."""
+    pa, pb = Path(a), Path(b)
     try:
-        yield tmp
-        os.chmod(tmp, file_mode())  # mkstemp creates 0600
-        os.replace(tmp, target)
+        if pa.resolve() == pb.resolve():
+            return True
+    except OSError:
+        pass
+    try:
+        return pa.exists() and pb.exists() and os.path.samefile(pa, pb)
+    except OSError:
+        return False
+
+
+def _inside(path: Path, directory: Path) -> bool:
+    try:
+        path.resolve().relative_to(directory.resolve())
+        return True
+    except (ValueError, OSError):
+        return False
+
+
+def check_output(
+    output: PathLike, inputs: Iterable[PathLike] = (), *, flag: str = "-o", directory: bool = False
+) -> Path:
+    """Validate an output path before any work: raise :class:`OutputPathError` naming ``flag``.
+
+    The parent directory must exist (memlog never creates it); a file output must not be an
+    existing directory (``directory=True``: an output directory must not be an existing file);
+    the output must not be any of ``inputs`` nor lie inside an input directory (a ROS 2 bag).
+    """
+    out = Path(output)
+    if str(output) == "":
+        raise OutputPathError(f"{flag}: empty output path")
+    parent = out.parent if str(out.parent) else Path(".")
+    if not parent.is_dir():
+        raise OutputPathError(f"{flag} {out}: directory {parent} does not exist (memlog does not create it)")
+    if not directory and out.is_dir():
+        raise OutputPathError(f"{flag} {out}: is a directory, expected a file name")
+    if directory and out.exists() and not out.is_dir():
+        raise OutputPathError(f"{flag} {out}: exists and is not a directory")
+    for inp in inputs:
+        ip = Path(inp)
+        if same_path(out, ip):
+            raise OutputPathError(f"{flag} {out}: would overwrite the input {ip}")
+        if ip.is_dir() and _inside(out, ip):
+            raise OutputPathError(f"{flag} {out}: lies inside the input bag directory {ip}")
+    return out
+
+
+class AtomicFile:
+    """A file written under a temporary name and renamed to ``path`` by :meth:`commit`.
+
+    ``fh`` is the open binary handle; :meth:`abort` (or an exception inside ``with``) removes
+    the temporary file and leaves ``path`` as it was.
+    """
+
+    def __init__(self, path: PathLike) -> None:
+        self.path = Path(path)
+        parent = self.path.parent if str(self.path.parent) else Path(".")
+        if not parent.is_dir():
+            raise LogWriteError(f"{self.path}: directory {parent} does not exist")
+        if self.path.is_dir():
+            raise LogWriteError(f"{self.path}: is a directory")
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=parent)
+        self.tmp = Path(tmp)
+        self.fh: BinaryIO = os.fdopen(fd, "wb")
+        self._done = False
+
+    def commit(self) -> Path:
+        """Flush, fsync, set the normal file mode and rename over ``path``."""
+        if self._done:
+            return self.path
+        try:
+            self.fh.flush()
+            os.fsync(self.fh.fileno())
+            self.fh.close()
+            os.chmod(self.tmp, file_mode())  # mkstemp creates 0600
+            os.replace(self.tmp, self.path)
+        except BaseException:
+            self.abort()
+            raise
+        self._done = True
+        return self.path
+
+    def abort(self) -> None:
+        """Drop the temporary file; the target is left as it was."""
+        if self._done:
+            return
+        self._done = True
+        try:
+            self.fh.close()
+        finally:
+            self.tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> "AtomicFile":
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None) -> None:
+        if et is None:
+            self.commit()
+        else:
+            self.abort()
+
+
+@contextlib.contextmanager
+def atomic_output(path: PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to ``path`` for a library that writes by file name; rename it
+    to ``path`` if the block succeeds, remove it on any exception."""
+    af = AtomicFile(path)
+    af.fh.close()
+    try:
+        yield af.tmp
+        af.fh = open(af.tmp, "ab")
+        af.commit()
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        af.abort()
         raise
 
 
-def write_bytes_atomic(path: str | os.PathLike[str], data: bytes, check: Callable[[Path], None] | None = None) -> Path:
-    """Write ``data`` to ``path`` atomically (fsynced); ``check`` may inspect the temporary file first."""
-    with atomic_output(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
+def write_bytes_atomic(path: PathLike, data: bytes, check: Callable[[Path], None] | None = None) -> Path:
+    """Write ``data`` to ``path`` atomically; ``check`` may inspect the temporary file first."""
+    with AtomicFile(path) as af:
+        af.fh.write(data)
         if check is not None:
-            check(tmp)
+            af.fh.flush()
+            check(af.tmp)
     return Path(path)

@@ -5,17 +5,19 @@ from __future__ import annotations
 import os
 import sys
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Container, Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
 
-from memlog.errors import ImageDecodeError
+from memlog.errors import ConfigError, ImageDecodeError, LogReadError
 from memlog.io.camera import camera_kind, extract_image
 from memlog.io.decoders import UnsupportedEncoding, make_deserializer
+from memlog.io.frame import Frame
 from memlog.io.records import Attachment, ChannelInfo, RawMessage, ReadReport
-from memlog.io.types import Frame, LogInfo, TopicInfo
+from memlog.io.types import LogInfo, TopicInfo
 
-__all__ = ["LogReader", "FrameError"]
+__all__ = ["LogReader", "FrameError", "StreamItem", "FrameWindow"]
 
 
 class FrameError:
@@ -26,6 +28,44 @@ class FrameError:
 
     def __str__(self) -> str:
         return f"{self.path}: topic {self.topic} message {self.index} (log time {self.log_time}): {self.reason}"
+
+
+@dataclass(frozen=True)
+class StreamItem:
+    """One record of :meth:`LogReader.stream`.
+
+    For a camera message: ``index`` is its position on its topic (from 0, log-time order, counted
+    from the start of the log whatever the window), ``frame`` the deserialized frame (None when
+    the message does not deserialize: it was reported). For a passthrough message (a topic
+    named in ``passthrough``): ``index`` and ``frame`` are None.
+    """
+
+    raw: RawMessage
+    index: int | None = None
+    frame: Frame | None = None
+
+
+@dataclass(frozen=True)
+class FrameWindow:
+    """Which camera frames a step reads: ``topics`` (None: every camera topic), the log-time
+    window [``start_ns``, ``end_ns``) and every ``stride``-th frame of each topic."""
+
+    topics: tuple[str, ...] | None = None
+    start_ns: int | None = None
+    end_ns: int | None = None
+    stride: int = 1
+
+    def __post_init__(self) -> None:
+        if isinstance(self.stride, bool) or not isinstance(self.stride, int) or self.stride < 1:
+            raise ConfigError(f"stride must be an integer >= 1, got {self.stride!r}")
+        if self.start_ns is not None and self.end_ns is not None and self.end_ns <= self.start_ns:
+            raise ConfigError(f"the time window is empty: end {self.end_ns} <= start {self.start_ns}")
+        if self.topics is not None:
+            object.__setattr__(self, "topics", tuple(self.topics))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"topics": list(self.topics) if self.topics is not None else None, "start_ns": self.start_ns,
+                "end_ns": self.end_ns, "stride": self.stride}
 
 
 def _warn_stderr(text: str) -> None:
@@ -111,8 +151,6 @@ class LogReader(ABC):
         if wanted is not None:
             missing = wanted - set(self.topics())
             if missing:
-                from memlog.errors import LogReadError
-
                 raise LogReadError(
                     f"{self.path}: no topic {', '.join(sorted(missing))} (topics: {', '.join(self.topics())})"
                 )
@@ -154,6 +192,85 @@ class LogReader(ABC):
     def _fill_time_range(self, info: LogInfo) -> None:
         """Hook for formats whose index knows per-topic time ranges."""
 
+    def check_camera_topics(self, topics: Iterable[str] | None) -> list[str]:
+        """The camera topics to stream: ``topics`` (checked: each must be a camera topic of
+        this log) or, when None, every camera topic. :class:`LogReadError` names what is wrong."""
+        cams = self.camera_topics()
+        if topics is None:
+            return cams
+        wanted = sorted(set(topics))
+        not_cam = set(wanted) - set(cams)
+        if not_cam:
+            bad = ", ".join(sorted(not_cam))
+            if not_cam - set(self.topics()):
+                raise LogReadError(f"{self.path}: no topic {bad} (camera topics: {', '.join(cams) or 'none'})")
+            raise LogReadError(f"{self.path}: topic {bad} is not a camera topic (camera topics: {', '.join(cams) or 'none'})")
+        return wanted
+
+    def count_frames(self, window: FrameWindow) -> int | None:
+        """How many frames :meth:`stream` yields for ``window``, from the index when the log has
+        one (None when only a full scan could tell)."""
+        counts = self.message_counts()
+        if counts is None:
+            return None
+        windowed = window.start_ns is not None or window.end_ns is not None
+        total = 0
+        for topic in self.check_camera_topics(window.topics):
+            n = sum(counts.get(ch.id, 0) for ch in self.channels() if ch.topic == topic)
+            times = self.topic_times(topic) if windowed else None
+            if windowed and times is None:
+                return None
+            total += _count_window(n, times, window)
+        return total
+
+    def topic_times(self, topic: str) -> Any:
+        """Sorted log times (numpy int64) of every message on ``topic`` from the log's index,
+        without reading message data; None when the format or this file has no such index."""
+        return None
+
+    def stream(
+        self,
+        topics: Iterable[str] | None = None,
+        *,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+        stride: int = 1,
+        indices: Mapping[str, Container[int]] | None = None,
+        passthrough: Iterable[str] = (),
+        errors: list[FrameError] | None = None,
+    ) -> Iterator[StreamItem]:
+        """The one frame stream every step reads: camera messages of ``topics`` (default: every
+        camera topic) as :class:`StreamItem` with their frame index, in log-time order.
+
+        A camera message is yielded when it lies in the log-time window [``start_ns``,
+        ``end_ns``), its index is a multiple of ``stride`` and (``indices`` given) its index is
+        in ``indices[topic]``. Messages of the ``passthrough`` topics come along unfiltered
+        (``index``/``frame`` None), interleaved in log-time order. Messages that do not
+        deserialize are reported (warning, ``errors``, ``report.bad_messages``).
+        """
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+            raise ConfigError(f"stride must be an integer >= 1, got {stride!r}")
+        cams = set(self.check_camera_topics(topics))
+        extra = set(passthrough) - cams
+        if not cams and not extra:
+            return
+        decoders: dict[int, Any] = {}
+        counters: dict[str, int] = {}
+        # Read from the start so indices are positions on the topic; skip decoding before the window.
+        for m in self.messages(cams | extra, None if cams else start_ns, end_ns, True):
+            topic = m.channel.topic
+            if topic not in cams:
+                if start_ns is None or m.log_time >= start_ns:
+                    yield StreamItem(m)
+                continue
+            idx = counters.get(topic, 0)
+            counters[topic] = idx + 1
+            if start_ns is not None and m.log_time < start_ns:
+                continue
+            if idx % stride or (indices is not None and idx not in indices.get(topic, ())):
+                continue
+            yield StreamItem(m, idx, self.to_frame(m, idx, decoders, errors))
+
     def frames(
         self,
         topics: Iterable[str] | None = None,
@@ -161,46 +278,15 @@ class LogReader(ABC):
         end_ns: int | None = None,
         stride: int = 1,
         errors: list[FrameError] | None = None,
+        *,
+        indices: Mapping[str, Container[int]] | None = None,
     ) -> Iterator[Frame]:
-        """Stream camera frames in log-time order, payloads still encoded.
-
-        ``topics`` defaults to every camera topic. ``stride`` keeps every n-th frame of each
-        topic (counted by frame index). Frame indices count every message of the topic from
-        the start of the log, whatever the time window. Messages that do not deserialize are
-        reported (warning + ``errors`` list + ``report.bad_messages``) and skipped.
-        """
-        if stride < 1:
-            raise ValueError("stride must be >= 1")
-        cams = self.camera_topics()
-        if topics is None:
-            wanted = set(cams)
-        else:
-            wanted = set(topics)
-            not_cam = wanted - set(cams)
-            if not_cam:
-                from memlog.errors import LogReadError
-
-                known = set(self.topics())
-                bad = ", ".join(sorted(not_cam))
-                if not_cam - known:
-                    raise LogReadError(f"{self.path}: no topic {bad} (camera topics: {', '.join(cams) or 'none'})")
-                raise LogReadError(f"{self.path}: topic {bad} is not a camera topic (camera topics: {', '.join(cams) or 'none'})")
-        if not wanted:
-            return
-        decoders: dict[int, Any] = {}
-        counters: dict[str, int] = {}
-        # Read from the start so indices are positions on the topic; skip decoding before the window.
-        for m in self._iter_messages(wanted, None, end_ns, True):
-            topic = m.channel.topic
-            idx = counters.get(topic, 0)
-            counters[topic] = idx + 1
-            if start_ns is not None and m.log_time < start_ns:
-                continue
-            if idx % stride:
-                continue
-            frame = self.to_frame(m, idx, decoders, errors)
-            if frame is not None:
-                yield frame
+        """Camera frames of :meth:`stream` (payloads still encoded); messages that do not
+        deserialize are reported and left out."""
+        for item in self.stream(topics, start_ns=start_ns, end_ns=end_ns, stride=stride, indices=indices,
+                                errors=errors):
+            if item.frame is not None:
+                yield item.frame
 
     def to_frame(
         self, m: RawMessage, idx: int, decoders: dict[int, Any], errors: list[FrameError] | None
@@ -248,3 +334,21 @@ class LogReader(ABC):
         self.report.undecodable_frames += 1
         self.warn(str(err))
         return err
+
+
+def _count_window(n: int, times: Any, window: FrameWindow) -> int:
+    """Frames of a topic with ``n`` messages (log times ``times`` when a window is set) that lie
+    in the window and on the stride (indices counted from the first message)."""
+    import numpy as np
+
+    first, last = 0, n
+    if times is not None:
+        t = np.asarray(times)
+        if window.start_ns is not None:
+            first = int(np.searchsorted(t, window.start_ns, side="left"))
+        if window.end_ns is not None:
+            last = int(np.searchsorted(t, window.end_ns, side="left"))
+    if last <= first:
+        return 0
+    s = window.stride
+    return (last - 1) // s - (first + s - 1) // s + 1

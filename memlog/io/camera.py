@@ -12,7 +12,7 @@ from typing import Any
 
 from memlog.io.types import ImagePayload
 
-__all__ = ["camera_kind", "is_camera_type", "extract_image", "normalize_msgtype"]
+__all__ = ["camera_kind", "extract_image", "normalize_msgtype"]
 
 _COMPRESSED = {
     "sensor_msgs/CompressedImage",
@@ -42,10 +42,6 @@ def camera_kind(msgtype: str) -> str | None:
     if norm in _RAW:
         return "raw"
     return None
-
-
-def is_camera_type(msgtype: str) -> bool:
-    return camera_kind(msgtype) is not None
 
 
 def _get(msg: Any, name: str, default: Any = None) -> Any:

@@ -45,14 +45,14 @@ def open_log(path: str | os.PathLike[str], validate_crcs: bool = True) -> LogRea
     """Open an MCAP file, a ROS 1 ``.bag`` or a ROS 2 bag directory (or its ``.db3``)."""
     kind = sniff_format(path)
     if kind == "mcap":
-        from memlog.io.mcap_log import McapLog
+        from memlog.io.mcap import McapLog
 
         return McapLog(path, validate_crcs=validate_crcs)
     if kind == "ros1bag":
-        from memlog.io.bag import Ros1BagLog
+        from memlog.io.rosbag1 import Ros1BagLog
 
         return Ros1BagLog(path)
-    from memlog.io.bag import Ros2BagLog
+    from memlog.io.rosbag2 import Ros2BagLog
 
     target = Path(path).parent if kind == "ros2bag-file" else Path(path)
     return Ros2BagLog(target)

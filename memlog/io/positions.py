@@ -16,11 +16,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from memlog.errors import LogReadError
 from memlog.io.base import LogReader
 from memlog.io.camera import normalize_msgtype
 from memlog.io.decoders import make_deserializer
 
-__all__ = ["PositionTrack", "position_topics", "read_track", "EARTH_RADIUS_M"]
+__all__ = ["PositionTrack", "position_topics", "read_track", "EARTH_RADIUS_M", "geo_origin", "geo_to_local", "local_to_geo"]
 
 EARTH_RADIUS_M = 6_371_008.8
 _GNSS = {"sensor_msgs/NavSatFix", "foxglove.LocationFix", "foxglove_msgs/LocationFix"}
@@ -28,6 +29,38 @@ _POSE = {
     "geometry_msgs/PoseStamped", "geometry_msgs/PoseWithCovarianceStamped", "nav_msgs/Odometry",
     "geometry_msgs/TransformStamped", "foxglove.PoseInFrame", "foxglove_msgs/PoseInFrame",
 }
+
+
+def geo_origin(latlon: npt.ArrayLike) -> tuple[float, float]:
+    """Origin of a local frame for geographic points: mean latitude and circular mean longitude
+    of the finite rows of ``latlon`` ([N, >=2] degrees); (0, 0) when there is none."""
+    a = np.asarray(latlon, dtype=np.float64)
+    fin = a[np.all(np.isfinite(a[:, :2]), axis=1), :2] if a.ndim == 2 and a.size else np.zeros((0, 2))
+    if not fin.size:
+        return 0.0, 0.0
+    lon = np.radians(fin[:, 1])
+    return float(fin[:, 0].mean()), float(np.degrees(np.arctan2(np.sin(lon).mean(), np.cos(lon).mean())))
+
+
+def geo_to_local(latlon: npt.ArrayLike, origin: tuple[float, float]) -> npt.NDArray[np.float64]:
+    """Equirectangular projection of (lat, lon) degrees to local (east, north) metres about
+    ``origin``; longitudes are wrapped across the antimeridian (+-180). Accurate to centimetres
+    over the few kilometres of a drive, well under 1 % over tens of km."""
+    a = np.asarray(latlon, dtype=np.float64)
+    lat0, lon0 = origin
+    dlon = (a[:, 1] - lon0 + 180.0) % 360.0 - 180.0
+    x = EARTH_RADIUS_M * np.radians(dlon) * math.cos(math.radians(lat0))
+    y = EARTH_RADIUS_M * np.radians(a[:, 0] - lat0)
+    return np.stack([x, y], axis=1)
+
+
+def local_to_geo(xy: npt.ArrayLike, origin: tuple[float, float]) -> npt.NDArray[np.float64]:
+    """Inverse of :func:`geo_to_local`: (lat, lon) degrees, longitude wrapped into [-180, 180)."""
+    a = np.asarray(xy, dtype=np.float64)
+    lat0, lon0 = origin
+    lat = lat0 + np.degrees(a[:, 1] / EARTH_RADIUS_M)
+    lon = (lon0 + np.degrees(a[:, 0] / (EARTH_RADIUS_M * math.cos(math.radians(lat0)))) + 180.0) % 360.0 - 180.0
+    return np.stack([lat, lon], axis=1)
 
 
 @dataclass
@@ -66,10 +99,8 @@ class PositionTrack:
         if self.latlon is None:
             return None
         xyz = self.at(t_ns)
-        lat0, lon0 = self.latlon[0, 0], self.latlon[0, 1]
-        lat = lat0 + np.degrees(xyz[:, 1] / EARTH_RADIUS_M)
-        lon = lon0 + np.degrees(xyz[:, 0] / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
-        return np.stack([lat, lon, xyz[:, 2]], axis=1)
+        ll = local_to_geo(xyz[:, :2], (float(self.latlon[0, 0]), float(self.latlon[0, 1])))
+        return np.stack([ll[:, 0], ll[:, 1], xyz[:, 2]], axis=1)
 
 
 def position_topics(reader: LogReader) -> list[tuple[str, str]]:
@@ -119,8 +150,6 @@ def read_track(reader: LogReader, topic: str | None = None) -> PositionTrack | N
     else:
         kinds = dict(topics)
         if topic not in kinds:
-            from memlog.errors import LogReadError
-
             raise LogReadError(f"{reader.path}: topic {topic} carries no positions (NavSatFix, pose or odometry)")
         kind = kinds[topic]
     decoders: dict[int, Any] = {}
@@ -141,8 +170,6 @@ def read_track(reader: LogReader, topic: str | None = None) -> PositionTrack | N
     if kind == "gnss":
         if len(a) == 0:
             return PositionTrack(topic, kind, t, a, a)
-        lat0, lon0 = a[0, 0], a[0, 1]
-        x = np.radians(a[:, 1] - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
-        y = np.radians(a[:, 0] - lat0) * EARTH_RADIUS_M
-        return PositionTrack(topic, kind, t, np.stack([x, y, a[:, 2]], axis=1), a)
+        xy = geo_to_local(a, (float(a[0, 0]), float(a[0, 1])))
+        return PositionTrack(topic, kind, t, np.column_stack([xy, a[:, 2]]), a)
     return PositionTrack(topic, kind, t, a)

@@ -1,14 +1,11 @@
-"""Plain data types that flow from the readers to the scorer and the writers."""
+"""Plain data types of the readers: encoded image payloads and log summaries."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from typing import Literal
 
-import numpy as np
-import numpy.typing as npt
-
-__all__ = ["ImagePayload", "Frame", "TopicInfo", "LogInfo"]
+__all__ = ["ImagePayload", "TopicInfo", "LogInfo"]
 
 PayloadKind = Literal["compressed", "raw"]
 
@@ -31,36 +28,6 @@ class ImagePayload:
     height: int = 0
     step: int = 0
     is_bigendian: bool = False
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One camera message, with where it came from.
-
-    ``index`` is the position of the message on its topic, counted from 0 in
-    log-time order (the spec's frame index); ``stamp_ns`` is the header stamp
-    (``log_time_ns`` when the message has no header).
-    """
-
-    topic: str
-    index: int
-    log_time_ns: int
-    stamp_ns: int
-    frame_id: str
-    payload: ImagePayload
-    msgtype: str = ""
-
-    def decode_bgr(self) -> npt.NDArray[np.uint8]:
-        """Decode the payload to an HxWx3 uint8 BGR array (see :mod:`memlog.io.image`)."""
-        from memlog.io.image import decode_bgr
-
-        return decode_bgr(self.payload)
-
-    def decode_gray(self) -> npt.NDArray[np.uint8]:
-        """Decode the payload to an HxW uint8 grey array (see :mod:`memlog.io.image`)."""
-        from memlog.io.image import decode_gray
-
-        return decode_gray(self.payload)
 
 
 @dataclass

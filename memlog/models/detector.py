@@ -83,18 +83,40 @@ def locate_detector_files() -> tuple[Path, Path]:
     return pb, pbtxt
 
 
-def load_detector() -> Any:
-    """The detector as a ``cv2.dnn.Net`` (``readNetFromTensorflow(pb, pbtxt)``).
+def load_detector(device: str = "auto") -> Any:
+    """The detector as a ``cv2.dnn.Net`` (``readNetFromTensorflow(pb, pbtxt)``), on OpenCV's CUDA
+    backend when ``device`` allows it and this OpenCV build has one
+    (:func:`memlog.models.runtime.detector_backend`), else on the CPU. ``net.memlog_device`` says which.
 
     Output of ``net.forward()``: shape (1, 1, N, 7), rows ``[batch, class_id, confidence,
     x0, y0, x1, y1]`` with class ids of :data:`COCO_LABELS` and coordinates relative to the
     input (not clipped).
     """
+    from memlog.models.runtime import detector_backend
+
     pb, pbtxt = locate_detector_files()
+    used, backend, target = detector_backend(device)
     try:
-        return cv2.dnn.readNetFromTensorflow(str(pb), str(pbtxt))
+        net = cv2.dnn.readNetFromTensorflow(str(pb), str(pbtxt))
+        net.setPreferableBackend(backend)
+        net.setPreferableTarget(target)
     except cv2.error as exc:
         raise ModelError(f"OpenCV could not load the detector from {pb} and {pbtxt}: {exc}") from exc
+    return _DeviceNet(net, used)
+
+
+class _DeviceNet:
+    """A ``cv2.dnn.Net`` that also says which device it runs on (``device``)."""
+
+    def __init__(self, net: Any, device: str) -> None:
+        self._net = net
+        self.device = device
+
+    def setInput(self, blob: Any) -> None:  # noqa: N802 (cv2's name)
+        self._net.setInput(blob)
+
+    def forward(self) -> Any:
+        return self._net.forward()
 
 
 def detector_info(*, hashes: bool = True) -> dict[str, Any]:

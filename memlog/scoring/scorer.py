@@ -31,8 +31,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from memlog.config import ScoreConfig
 from memlog.errors import ScoringError
+from memlog.models.resmem import FRAME
+from memlog.scoring.config import ScoreConfig
 
 __all__ = ["Scorer", "FrameScore", "CheapStage", "resize_frame", "STAGES"]
 
@@ -40,7 +41,7 @@ STAGES = ("staticity", "entropy", "memorability")
 T = TypeVar("T")
 
 
-def resize_frame(bgr: npt.NDArray[Any], size: int = 1135) -> npt.NDArray[np.uint8]:
+def resize_frame(bgr: npt.NDArray[Any], size: int = FRAME) -> npt.NDArray[np.uint8]:
     """The spec's frame: BGR (grey replicated), ``cv2.resize`` to size x size, INTER_LINEAR."""
     if bgr.ndim == 2:
         bgr = cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR)
@@ -128,7 +129,8 @@ class Scorer:
             from memlog.scoring.staticity import Staticity
 
             c = self.config
-            self._stat = Staticity(conf=c.det_conf, min_area=c.det_min_area, dynamic=c.dynamic_classes, size=c.size)
+            self._stat = Staticity(conf=c.det_conf, min_area=c.det_min_area, dynamic=c.dynamic_classes,
+                                   device=c.device)
         return self._stat
 
     @property
@@ -137,7 +139,8 @@ class Scorer:
             from memlog.scoring.memorability import Memorability
 
             threads = self.config.threads or None
-            exact = Memorability(self._mem_path, threads=threads, batch=self.config.crop_batch)
+            exact = Memorability(self._mem_path, threads=threads, batch=self.config.crop_batch,
+                                 device=self.config.device)
             if self.config.mode == "fast":
                 from memlog.models.quantize import resmem_int8_bounds, resmem_int8_path
                 from memlog.scoring.memorability import FastMemorability
@@ -145,7 +148,7 @@ class Scorer:
                 int8 = resmem_int8_path()
                 eps, delta, bias = resmem_int8_bounds(int8)
                 self._mem = FastMemorability(int8, exact, eps, delta, bias, refine=self.config.fast_refine,
-                                             threads=threads)
+                                             threads=threads, device=self.config.device)
             else:
                 self._mem = exact
         return self._mem
@@ -155,6 +158,31 @@ class Scorer:
         _ = self.staticity.net if hasattr(self.staticity, "net") else None
         _ = self.memorability
         return self
+
+    def provenance(self) -> dict[str, Any]:
+        """What scored the frames: sha256 of every model file used and the device each runs on
+        (recorded in outputs). Loads the models; :class:`~memlog.errors.ModelError` when a hash
+        cannot be read, so provenance is never silently empty."""
+        from memlog.models import cache
+        from memlog.models.detector import detector_info
+        from memlog.models.fetch import sha256_file
+        from memlog.models.runtime import session_device
+
+        self.load()
+        models: dict[str, str] = {}
+        devices: dict[str, str] = {}
+        mem = self.memorability
+        exact = getattr(mem, "exact", mem)
+        for name, model in (("resmem", exact), ("resmem-int8", getattr(mem, "surrogate", None))):
+            if model is None or not hasattr(model, "path"):
+                continue
+            models[name] = cache.recorded_sha256(model.path) or sha256_file(model.path)
+            devices[name] = session_device(model.session)
+        net = getattr(self.staticity, "net", None)
+        if net is not None:
+            models["ssd-mobilenet-v2-coco"] = detector_info(hashes=True)["sha256"]["graph"]
+            devices["ssd-mobilenet-v2-coco"] = getattr(net, "device", "cpu")
+        return {"models": models, "devices": devices}
 
     # -- stages ---------------------------------------------------------------------
     def cheap(self, bgr: npt.NDArray[Any], keep_maps: bool | None = None) -> CheapStage:
@@ -166,7 +194,7 @@ class Scorer:
         timing: dict[str, float] = {}
         t0 = time.perf_counter()
         h, w = bgr.shape[:2]
-        f = resize_frame(bgr, c.size)
+        f = resize_frame(bgr)
         t1 = time.perf_counter()
         timing["resize"] = (t1 - t0) * 1e3
         s_map, ss, dets = self.staticity(f)

@@ -197,8 +197,10 @@ class Staticity:
         min_area: float = 0.05,
         dynamic: Iterable[str] | Mapping[str, Any] = DYNAMIC_CLASSES,
         size: int = 1135,
+        device: str = "auto",
     ) -> None:
         self._net = net
+        self.device = device
         self.conf = float(conf)
         self.min_area = float(min_area)
         self.dynamic = _names(dynamic)
@@ -214,7 +216,7 @@ class Staticity:
         if self._net is None:
             from memlog.models.detector import load_detector
 
-            self._net = load_detector()
+            self._net = load_detector(self.device)
         return self._net
 
     def __call__(self, bgr1135: npt.NDArray[np.uint8]) -> tuple[npt.NDArray[np.uint8], float, list[Detection]]:

@@ -177,12 +177,17 @@ def _path_length(table: ScoreTable) -> NDArray[np.float64]:
     return s
 
 
-def _bins(value: NDArray[np.float64], width: float, n_bins: int | None) -> NDArray[np.int64]:
-    """floor(value / width), clipped to n_bins - 1 when given."""
-    b = np.floor(value / width).astype(np.int64)
-    if n_bins is not None:
-        b = np.clip(b, 0, n_bins - 1)
-    return b
+def _bin_along(value: NDArray[np.float64], spacing: float | None, n_bins: int | None) -> tuple[NDArray[np.int64], float]:
+    """Bins of a non-decreasing coordinate (time or path length from 0) and their width: every
+    ``spacing``, else ``n_bins`` equal parts of its span (clipped to n_bins - 1); one bin, width
+    0, when the span is 0."""
+    span = float(value[-1])
+    if spacing is not None:
+        return np.floor(value / spacing).astype(np.int64), float(spacing)
+    if span > 0:
+        assert n_bins is not None
+        return np.clip(np.floor(value * n_bins / span).astype(np.int64), 0, n_bins - 1), span / n_bins
+    return np.zeros(len(value), dtype=np.int64), 0.0
 
 
 def _view_segments(table: ScoreTable, view_distance: float) -> NDArray[np.int64]:
@@ -262,33 +267,16 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
             info["spacing_frames"] = n / n_seg
     elif by == "time":
         dt = (table.t_ns - table.t_ns[0]).astype(np.float64)
-        span = float(dt[-1])
-        if config.spacing_s is not None:
-            width = config.spacing_s * 1e9
-            raw = _bins(dt, width, None)
-        elif span > 0:
-            assert n_seg is not None
-            width = span / n_seg
-            raw = _bins(dt * n_seg / span, 1.0, n_seg)
-        else:
-            width = 0.0
-            raw = np.zeros(n, dtype=np.int64)
+        spacing = None if config.spacing_s is None else config.spacing_s * 1e9
+        raw, width = _bin_along(dt, spacing, n_seg)
+        if width == 0.0:
             info["note"] = "timestamps span 0 s: one segment"
         info["spacing_s"] = width / 1e9
     elif by == "distance":
         s = _path_length(table)
-        total = float(s[-1])
-        info["path_length_m"] = total
-        if config.spacing_m is not None:
-            width = config.spacing_m
-            raw = _bins(s, width, None)
-        elif total > 0:
-            assert n_seg is not None
-            width = total / n_seg
-            raw = _bins(s * n_seg / total, 1.0, n_seg)
-        else:
-            width = 0.0
-            raw = np.zeros(n, dtype=np.int64)
+        info["path_length_m"] = float(s[-1])
+        raw, width = _bin_along(s, config.spacing_m, n_seg)
+        if width == 0.0:
             info["note"] = "the robot did not move (path length 0 m): one segment"
         info["spacing_m"] = width
     else:  # view

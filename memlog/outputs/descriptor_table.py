@@ -1,4 +1,4 @@
-"""Reference descriptor tables in Parquet: write, read, and refuse incompatible pairs.
+"""Descriptor tables (:class:`~memlog.descriptors.table.DescriptorTable`) as Parquet files.
 
 One row per frame: ``topic`` (string), ``frame_index``, ``log_time_ns``, ``stamp_ns``
 (int64), the memorability scores ``ms``/``ss``/``es`` (float64, null when not scored),
@@ -17,7 +17,6 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -26,85 +25,16 @@ import numpy.typing as npt
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from memlog._version import __version__
 from memlog.descriptors.base import DescriptorMeta
-from memlog.io.atomic import atomic_output
+from memlog.descriptors.table import POSITION_COLUMNS, SCORE_COLUMNS, DescriptorTable
 from memlog.errors import DescriptorError
+from memlog.io.atomic import atomic_output
 
-__all__ = [
-    "DescriptorTable",
-    "write_descriptors",
-    "read_descriptors",
-    "check_compatible",
-    "atomic_output",
-    "POSITION_COLUMNS",
-]
+__all__ = ["write_descriptors", "read_descriptors"]
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
-
-#: Allowed position column sets: geographic (degrees, metres) or local (metres).
-POSITION_COLUMNS: dict[str, tuple[str, ...]] = {"geo": ("lat", "lon", "alt"), "local": ("x", "y", "z")}
-_SCORES = ("ms", "ss", "es")
-_PREFIX = "memlog."
-
-
-@dataclass
-class DescriptorTable:
-    """Descriptors of ``N`` frames with their identities, scores, positions and metadata.
-
-    ``descriptors`` is ``[N, dim]`` float32; ``ms``/``ss``/``es`` are float64 with NaN for
-    "not scored"; ``positions`` maps column names of one :data:`POSITION_COLUMNS` set to
-    float64 arrays (NaN = unknown). ``extra`` is caller metadata stored as JSON.
-    """
-
-    topic: list[str]
-    frame_index: I64
-    log_time_ns: I64
-    stamp_ns: I64
-    descriptors: npt.NDArray[np.float32]
-    meta: DescriptorMeta
-    ms: F64 | None = None
-    ss: F64 | None = None
-    es: F64 | None = None
-    positions: dict[str, F64] = field(default_factory=dict)
-    extra: dict[str, Any] = field(default_factory=dict)
-    memlog_version: str | None = None
-
-    def __post_init__(self) -> None:
-        self.descriptors = np.ascontiguousarray(self.descriptors, dtype=np.float32)
-        if self.descriptors.ndim != 2:
-            raise DescriptorError(f"descriptors must be [N, dim], got shape {self.descriptors.shape}")
-        n, dim = self.descriptors.shape
-        if dim != self.meta.dim:
-            raise DescriptorError(f"descriptors have dim {dim} but the metadata says {self.meta.dim}")
-        self.topic = [str(t) for t in self.topic]
-        self.frame_index = np.asarray(self.frame_index, dtype=np.int64)
-        self.log_time_ns = np.asarray(self.log_time_ns, dtype=np.int64)
-        self.stamp_ns = np.asarray(self.stamp_ns, dtype=np.int64)
-        for name in _SCORES:
-            val = getattr(self, name)
-            setattr(self, name, np.full(n, np.nan) if val is None else np.asarray(val, dtype=np.float64))
-        self.positions = {k: np.asarray(v, dtype=np.float64) for k, v in self.positions.items()}
-        used = [kind for kind, cols in POSITION_COLUMNS.items() if set(self.positions) & set(cols)]
-        unknown = set(self.positions) - {c for cols in POSITION_COLUMNS.values() for c in cols}
-        if unknown or len(used) > 1:
-            raise DescriptorError(
-                f"positions must use columns of one set {POSITION_COLUMNS}, got {sorted(self.positions)}"
-            )
-        columns: dict[str, Any] = {
-            "topic": self.topic,
-            "frame_index": self.frame_index,
-            "log_time_ns": self.log_time_ns,
-            "stamp_ns": self.stamp_ns,
-            **{s: getattr(self, s) for s in _SCORES},
-            **self.positions,
-        }
-        for name, col in columns.items():
-            if len(col) != n or (isinstance(col, np.ndarray) and col.ndim != 1):
-                raise DescriptorError(f"column {name} has {len(col)} values for {n} descriptors")
-
-    def __len__(self) -> int:
-        return int(self.descriptors.shape[0])
 
 
 def _meta_to_schema(meta: DescriptorMeta, extra: Mapping[str, Any], memlog_version: str) -> dict[bytes, bytes]:
@@ -127,8 +57,6 @@ def _meta_to_schema(meta: DescriptorMeta, extra: Mapping[str, Any], memlog_versi
 
 def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable) -> Path:
     """Write ``table`` to the Parquet file ``path`` atomically; return the path."""
-    from memlog import __version__
-
     n, dim = table.descriptors.shape
     flat = pa.array(table.descriptors.reshape(-1), type=pa.float32())
     arrays: dict[str, pa.Array] = {
@@ -137,7 +65,7 @@ def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable) -> P
         "log_time_ns": pa.array(table.log_time_ns, type=pa.int64()),
         "stamp_ns": pa.array(table.stamp_ns, type=pa.int64()),
     }
-    for name in _SCORES:
+    for name in SCORE_COLUMNS:
         arrays[name] = pa.array(getattr(table, name), type=pa.float64(), from_pandas=True)
     arrays["descriptor"] = pa.FixedSizeListArray.from_arrays(flat, dim)
     for cols in POSITION_COLUMNS.values():
@@ -219,42 +147,3 @@ def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
         extra=extra,
         memlog_version=version or None,
     )
-
-
-def _as_meta(m: DescriptorMeta | DescriptorTable | Mapping[str, Any]) -> DescriptorMeta:
-    if isinstance(m, DescriptorTable):
-        return m.meta
-    if isinstance(m, DescriptorMeta):
-        return m
-    return DescriptorMeta(
-        kind=str(m["kind"]),
-        version=str(m["version"]),
-        dim=int(m["dim"]),
-        model_sha256=m.get("model_sha256"),
-        params=dict(m.get("params") or {}),
-    )
-
-
-def _describe(m: DescriptorMeta) -> str:
-    sha = f"sha256 {m.model_sha256[:12]}…" if m.model_sha256 else "no model"
-    params = ", ".join(f"{k}={v}" for k, v in sorted(m.params.items()))
-    return f"{m.kind} v{m.version} ({m.dim}-d, {sha}{'; ' + params if params else ''})"
-
-
-def check_compatible(
-    map_meta: DescriptorMeta | DescriptorTable | Mapping[str, Any],
-    query_meta: DescriptorMeta | DescriptorTable | Mapping[str, Any],
-) -> None:
-    """Raise :class:`DescriptorError` unless both were made by the same describer.
-
-    Compares kind, version, dim, model sha256 and params, e.g. "map built with dinov2-cls v1
-    (384-d, sha256 198644e37de3…), query described with thumbnail v1 (2048-d, no model)".
-    """
-    a, b = _as_meta(map_meta), _as_meta(query_meta)
-    fields = ("kind", "version", "dim", "model_sha256", "params")
-    diff = [f for f in fields if getattr(a, f) != getattr(b, f)]
-    if diff:
-        raise DescriptorError(
-            f"map built with {_describe(a)}, query described with {_describe(b)}: "
-            f"{', '.join(diff)} differ; describe both with the same descriptor"
-        )

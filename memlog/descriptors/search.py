@@ -10,22 +10,17 @@ similarity ``-inf``.
 
 from __future__ import annotations
 
-import os
 import statistics
 import time
-from collections.abc import Mapping
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-import pyarrow as pa
 
-from memlog.io.atomic import atomic_output
 from memlog.errors import DescriptorError
 
-__all__ = ["match", "topk", "Confidence", "confidence", "QueryTiming", "time_per_query", "write_matches"]
+__all__ = ["match", "topk", "Confidence", "confidence", "QueryTiming", "time_per_query"]
 
 F32 = npt.NDArray[np.float32]
 I64 = npt.NDArray[np.int64]
@@ -220,68 +215,3 @@ def time_per_query(
         per_pass.append((time.perf_counter() - t0) / q.shape[0])
     return QueryTiming(statistics.median(per_pass), min(per_pass), int(db.shape[0]), int(q.shape[1]),
                        int(q.shape[0]), repeats)
-
-
-def write_matches(
-    path: str | os.PathLike[str],
-    indices: npt.ArrayLike,
-    similarities: npt.ArrayLike,
-    *,
-    query_ids: npt.ArrayLike | None = None,
-    ref_ids: npt.ArrayLike | None = None,
-    query_columns: Mapping[str, npt.ArrayLike] | None = None,
-) -> Path:
-    """Write matches in long form (one row per query and rank) to ``.parquet`` or ``.csv``.
-
-    Columns: ``query_row``, ``rank`` (0 = best), ``ref_row``, ``similarity``; with
-    ``query_ids``/``ref_ids`` (e.g. frame indices, indexed by row) also ``query_id`` and
-    ``ref_id``; ``query_columns`` adds per-query values (e.g. ``correct``) to each of its
-    rows. Empty slots (index -1) are not written. Atomic (temporary file, then rename).
-    """
-    idx = np.asarray(indices, dtype=np.int64)
-    sim = np.asarray(similarities, dtype=np.float32)
-    if idx.ndim != 2 or idx.shape != sim.shape:
-        raise DescriptorError(f"indices {idx.shape} and similarities {sim.shape} must both be [Q, k]")
-    target = Path(path)
-    suffix = target.suffix.lower()
-    if suffix not in (".parquet", ".pq", ".csv"):
-        raise DescriptorError(f"{target}: match files must end in .parquet or .csv")
-    qrow, rank = np.nonzero(idx >= 0)
-    ref = idx[qrow, rank]
-    cols: dict[str, pa.Array] = {
-        "query_row": pa.array(qrow.astype(np.int64)),
-        "rank": pa.array(rank.astype(np.int32)),
-        "ref_row": pa.array(ref),
-        "similarity": pa.array(sim[qrow, rank]),
-    }
-    if query_ids is not None:
-        qid = np.asarray(query_ids)
-        if qid.shape != (idx.shape[0],):
-            raise DescriptorError(f"query_ids must have {idx.shape[0]} values, got shape {qid.shape}")
-        cols["query_id"] = pa.array(qid[qrow])
-    if ref_ids is not None:
-        rid = np.asarray(ref_ids)
-        if rid.ndim != 1 or (ref.size and ref.max() >= rid.shape[0]):
-            raise DescriptorError(f"ref_ids ({rid.shape}) does not cover reference row {int(ref.max())}")
-        cols["ref_id"] = pa.array(rid[ref])
-    for name, values in (query_columns or {}).items():
-        v = np.asarray(values)
-        if v.shape != (idx.shape[0],):
-            raise DescriptorError(f"query column {name} must have {idx.shape[0]} values, got shape {v.shape}")
-        if name in cols:
-            raise DescriptorError(f"query column {name} clashes with a standard column")
-        cols[name] = pa.array(v[qrow])
-    table = pa.table(cols)
-    try:
-        with atomic_output(target) as tmp:
-            if suffix == ".csv":
-                import pyarrow.csv as pacsv
-
-                pacsv.write_csv(table, tmp)
-            else:
-                import pyarrow.parquet as pq
-
-                pq.write_table(table, tmp, compression="zstd")
-    except (OSError, pa.ArrowException) as exc:
-        raise DescriptorError(f"could not write {target}: {exc}") from None
-    return target

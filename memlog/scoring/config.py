@@ -1,20 +1,21 @@
-"""One configuration for every memlog parameter (defaults = the paper's, see SPEC.md).
+"""The scoring configuration (defaults = the paper's, see SPEC.md).
 
-Named configs (hloc style) live in :data:`CONFIGS`; a TOML or YAML file and command-line
-flags override them. The resolved config is written into every output as MCAP metadata.
+Named configs (hloc style) live in :data:`CONFIGS`; the ``[score]`` table of a config file
+(:mod:`memlog.configfile`) and command-line flags override them. The resolved config is
+written into every output as MCAP metadata.
 """
 
 from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass, fields, replace
-from pathlib import Path
-from typing import Any
+from dataclasses import asdict, dataclass, replace
+from typing import Any, Literal
 
+from memlog.configfile import build, config_section, read_config_file
 from memlog.errors import ConfigError
 
-__all__ = ["ScoreConfig", "CONFIGS", "load_config", "DYNAMIC_CLASS_NAMES"]
+__all__ = ["ScoreConfig", "CONFIGS", "load_config", "config_from_json", "DYNAMIC_CLASS_NAMES"]
 
 # The 21 COCO classes that count as dynamic (reasons in memlog.scoring.staticity.DYNAMIC_CLASSES).
 DYNAMIC_CLASS_NAMES: tuple[str, ...] = (
@@ -27,8 +28,8 @@ DYNAMIC_CLASS_NAMES: tuple[str, ...] = (
 class ScoreConfig:
     """Every parameter of scoring and selection.
 
-    Thresholds: ``mt``/``st``/``et`` (paper: 0.5/0.6/0.4). Geometry: frames are resized to
-    ``size`` x ``size`` (5 x 227 = 1135) and cut into ``grid`` x ``grid`` crops. Detector:
+    Thresholds: ``mt``/``st``/``et`` (paper: 0.5/0.6/0.4). Frames are resized to 1135 x 1135 and
+    cut into 5 x 5 crops of 227 (fixed by ResMem's input, :mod:`memlog.models.resmem`). Detector:
     ``det_conf`` and ``det_min_area`` (fraction of the image a box must cover). ``normalize``:
     "all" divides MS/ES by all pixels (paper formula), "static" by static pixels only.
     ``mode``: "exact" (fast exact entropy, early exit, crop-level bounds), "paper" (every
@@ -42,18 +43,17 @@ class ScoreConfig:
     mt: float = 0.5
     st: float = 0.6
     et: float = 0.4
-    size: int = 1135
-    grid: int = 5
     det_conf: float = 0.55
     det_min_area: float = 0.05
     dynamic_classes: tuple[str, ...] = DYNAMIC_CLASS_NAMES
     entropy_radius: int = 5
-    normalize: str = "all"
-    mode: str = "exact"
+    normalize: Literal["all", "static"] = "all"
+    mode: Literal["exact", "paper", "fast"] = "exact"
     all_scores: bool = False
     crop_batch: int = 5
     fast_refine: bool = True  # fast mode: rescore frames within the int8 error of MT with fp32
     threads: int = 0  # onnxruntime intra-op threads; 0 = all cores
+    device: Literal["auto", "cpu", "cuda"] = "auto"
     maps: bool = False
 
     def __post_init__(self) -> None:
@@ -61,18 +61,18 @@ class ScoreConfig:
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"{name} must be within [0, 1], got {v}")
-        if self.size % self.grid:
-            raise ConfigError(f"size {self.size} is not a multiple of grid {self.grid}")
         if self.normalize not in ("all", "static"):
             raise ConfigError(f"normalize must be 'all' or 'static', got {self.normalize!r}")
         if self.mode not in ("exact", "paper", "fast"):
             raise ConfigError(f"mode must be 'exact', 'paper' or 'fast', got {self.mode!r}")
         if not 0.0 <= self.det_conf <= 1.0 or not 0.0 <= self.det_min_area <= 1.0:
             raise ConfigError("det_conf and det_min_area must be within [0, 1]")
-
-    @property
-    def crop(self) -> int:
-        return self.size // self.grid
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ConfigError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+        for name, low in (("threads", 0), ("crop_batch", 1), ("entropy_radius", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -92,59 +92,31 @@ CONFIGS: dict[str, dict[str, Any]] = {
 }
 
 
-def _read_file(path: Path) -> dict[str, Any]:
-    text = path.read_text()
-    if path.suffix.lower() == ".toml":
-        import tomllib
-
-        try:
-            data = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{path}: invalid TOML: {exc}") from exc
-    elif path.suffix.lower() in (".yaml", ".yml"):
-        from ruamel.yaml import YAML
-        from ruamel.yaml.error import YAMLError
-
-        try:
-            data = YAML(typ="safe").load(text) or {}
-        except YAMLError as exc:
-            raise ConfigError(f"{path}: invalid YAML: {exc}") from exc
-    elif path.suffix.lower() == ".json":
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"{path}: invalid JSON: {exc}") from exc
-    else:
-        raise ConfigError(f"{path}: config files must be .toml, .yaml/.yml or .json")
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: top level must be a table of settings")
-    return dict(data.get("score", data))
-
-
 def load_config(
     name: str | None = None, path: str | os.PathLike[str] | None = None, **overrides: Any
 ) -> ScoreConfig:
-    """Named config, then file (``[score]`` table or top level), then non-None overrides."""
-    base: dict[str, Any] = {}
+    """Named config, then the file's ``[score]`` table (or top level), then non-None overrides;
+    every value type-checked (:func:`memlog.configfile.build`)."""
+    cfg = ScoreConfig()
     if name:
         if name not in CONFIGS:
             raise ConfigError(f"unknown config {name!r} (known: {', '.join(CONFIGS)})")
-        base.update(CONFIGS[name])
+        cfg = build(ScoreConfig, CONFIGS[name], f"preset {name}", cfg)
     if path is not None:
-        p = Path(path)
-        if not p.is_file():
-            raise ConfigError(f"{p}: config file not found")
-        base.update(_read_file(p))
-    base.update({k: v for k, v in overrides.items() if v is not None})
-    known = {f.name for f in fields(ScoreConfig)}
-    unknown = set(base) - known
-    if unknown:
-        raise ConfigError(f"unknown setting(s) {', '.join(sorted(unknown))} (known: {', '.join(sorted(known))})")
-    if "dynamic_classes" in base:
-        base["dynamic_classes"] = tuple(base["dynamic_classes"])
+        cfg = build(ScoreConfig, config_section(read_config_file(path), "score", str(path)), f"{path}: [score]", cfg)
+    given = {k: v for k, v in overrides.items() if v is not None}
+    if "dynamic_classes" in given:
+        given["dynamic_classes"] = tuple(given["dynamic_classes"])
+    return build(ScoreConfig, given, "settings", cfg) if given else cfg
+
+
+def config_from_json(text: str) -> ScoreConfig:
+    """The ScoreConfig recorded in an output (``ScoreConfig.to_json``); :class:`ConfigError` when it
+    is not one this version understands (written by another memlog version)."""
     try:
-        return ScoreConfig(**base)
-    except TypeError as exc:
-        raise ConfigError(str(exc)) from exc
-
-
+        d = json.loads(text)
+    except ValueError as exc:
+        raise ConfigError(f"recorded config is not JSON: {exc}") from None
+    if not isinstance(d, dict):
+        raise ConfigError("recorded config is not a table")
+    return build(ScoreConfig, d, "recorded config")

@@ -1,25 +1,24 @@
 """MCAP writer: copies every record of an input log and adds memlog's own channels.
 
-Output goes to ``<name>.<random>.tmp`` beside the target and is renamed over it only when
-:meth:`McapLogWriter.close` completes, so an interrupted run never leaves a half file
-under the final name. zstd chunks, CRCs, summary and indexes are on by default.
+Output goes through :class:`~memlog.io.atomic.AtomicFile` (a temporary file beside the target,
+renamed over it only when :meth:`McapLogWriter.close` completes), so an interrupted run never
+leaves a half file under the final name. zstd chunks, CRCs, summary and indexes are on by default.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import tempfile
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from types import TracebackType
-from typing import Any, BinaryIO
+from typing import Any
 
 from mcap.writer import CompressionType, Writer
 
-from memlog import __version__
+from memlog._version import __version__
 from memlog.errors import LogWriteError
-from memlog.io.atomic import file_mode
+from memlog.io.atomic import AtomicFile
 from memlog.io.base import LogReader
 from memlog.io.records import ChannelInfo, RawMessage
 
@@ -45,21 +44,12 @@ class McapLogWriter:
         compression: str = "zstd",
         chunk_size: int = 4 * 1024 * 1024,
         library: str | None = None,
-        overwrite: bool = True,
     ) -> None:
         self.path = Path(path)
         if compression not in _COMPRESSION:
             raise LogWriteError(f"unknown compression {compression!r} (zstd, lz4, none)")
-        if self.path.exists() and not overwrite:
-            raise LogWriteError(f"{self.path}: exists (pass overwrite=True / --force)")
-        if self.path.is_dir():
-            raise LogWriteError(f"{self.path}: is a directory")
-        parent = self.path.parent if str(self.path.parent) else Path(".")
-        if not parent.is_dir():
-            raise LogWriteError(f"{self.path}: directory {parent} does not exist")
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=parent)
-        self._tmp = Path(tmp)
-        self._fh: BinaryIO = os.fdopen(fd, "wb")
+        self._file = AtomicFile(self.path)
+        self._fh = self._file.fh
         self._writer = Writer(
             self._fh, chunk_size=chunk_size, compression=_COMPRESSION[compression], enable_crcs=True,
             enable_data_crcs=True,
@@ -134,11 +124,7 @@ class McapLogWriter:
             return self.path
         try:
             self._writer.finish()  # type: ignore[no-untyped-call]
-            self._fh.flush()
-            os.fsync(self._fh.fileno())
-            self._fh.close()
-            os.chmod(self._tmp, file_mode())  # mkstemp makes 0600; outputs get the usual umask mode
-            os.replace(self._tmp, self.path)
+            self._file.commit()
         except BaseException:
             self.abort()
             raise
@@ -150,10 +136,7 @@ class McapLogWriter:
         if self._closed:
             return
         self._closed = True
-        try:
-            self._fh.close()
-        finally:
-            self._tmp.unlink(missing_ok=True)
+        self._file.abort()
 
     def __enter__(self) -> "McapLogWriter":
         return self
@@ -179,17 +162,13 @@ def copy_log(
     reader: LogReader,
     writer: McapLogWriter,
     *,
-    on_message: Callable[[RawMessage], None] | None = None,
     log_time_order: bool = False,
     wrap: Callable[[Iterator[RawMessage]], Iterator[RawMessage]] | None = None,
-    extra_metadata: Iterable[tuple[str, Mapping[str, str]]] = (),
 ) -> CopyStats:
     """Copy every schema, channel, message, metadata and attachment record of ``reader``.
 
-    Channels are registered up front (so channels without messages survive). ``on_message``
-    is called after each message is written; callers that add channels (the scorer) hook
-    in there; ``wrap`` wraps the message stream (a progress bar). Messages stream in file
-    order unless ``log_time_order``.
+    Channels are registered up front (so channels without messages survive); ``wrap`` wraps the
+    message stream (a progress bar). Messages stream in file order unless ``log_time_order``.
     """
     stats = CopyStats()
     for ch in reader.channels():
@@ -199,16 +178,10 @@ def copy_log(
         writer.write_raw(msg)
         stats.messages += 1
         stats.bytes += len(msg.data)
-        if on_message is not None:
-            on_message(msg)
     for name, data in reader.metadata():
         writer.add_metadata(name, data)
         stats.metadata += 1
     for att in reader.attachments():
         writer.add_attachment(att.name, att.media_type, att.data, att.log_time, att.create_time)
         stats.attachments += 1
-    for extra_name, extra_data in extra_metadata:
-        writer.add_metadata(extra_name, extra_data)
     return stats
-
-

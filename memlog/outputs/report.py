@@ -17,8 +17,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from memlog.descriptors.parquet import DescriptorTable
-from memlog.evaluate.metrics import ProtocolResult
+from memlog.descriptors.table import DescriptorTable
+from memlog.errors import ImageDecodeError
+from memlog.evaluation.metrics import ProtocolResult
+from memlog.io.atomic import write_bytes_atomic
+from memlog.io.open import open_log
 from memlog.selection import ScoreTable, Selection
 
 __all__ = ["write_report", "svg_lines", "svg_histogram"]
@@ -119,17 +122,16 @@ def svg_timeline(table: ScoreTable, sel: Selection, w: int = 900, h: int = 240) 
 
 
 def _thumbs(log: str, topic: str, indices: set[int], width: int = 160) -> dict[int, str]:
-    from memlog.io import open_log
-
     out: dict[int, str] = {}
     if not indices:
         return out
     with open_log(log) as reader:
-        for f in reader.frames([topic]):
+        reader.on_warning = lambda text: None  # the evaluation already reported damage
+        for f in reader.frames([topic], indices={topic: indices}):
             if f.index in indices:
                 try:
                     img = f.decode_bgr()
-                except Exception:
+                except ImageDecodeError:
                     continue
                 h = max(1, int(img.shape[0] * width / img.shape[1]))
                 interp = cv2.INTER_AREA if img.shape[1] > width else cv2.INTER_NEAREST
@@ -218,6 +220,4 @@ whose best match was discarded reports no match. Random: mean ± std over {resul
 wrong best match would have been discarded by: {html.escape(json.dumps(contrib['wrong_match_discarded_by']))}.</p>
 <h2>Frames</h2>{_gallery('selected', kr, table, sel, thumbs)}{_gallery('discarded', dr, table, sel, thumbs)}
 </body></html>"""
-    from memlog.io.atomic import write_bytes_atomic
-
     return write_bytes_atomic(path, doc.encode())

@@ -39,7 +39,9 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from memlog.descriptors.search import topk
 from memlog.errors import EvaluationError
+from memlog.io.positions import geo_origin, geo_to_local
 
 __all__ = [
     "auc_pr_trapezoid",
@@ -61,8 +63,6 @@ I64 = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
 Truth = Sequence[Collection[int]]
 Scores = npt.ArrayLike | tuple[npt.ArrayLike, npt.ArrayLike]
-
-EARTH_RADIUS_M = 6_371_008.8
 
 
 def auc_pr_trapezoid(precision: npt.ArrayLike, recall: npt.ArrayLike) -> float:
@@ -276,8 +276,6 @@ class ProtocolResult:
 
 def _ranked(scores: Scores, k: int, ref_mask: BoolArray | None, n_ref: int) -> tuple[I64, F64]:
     """(indices [Q, >=k], similarities) from a similarity matrix or a (indices, sims) pair."""
-    from memlog.localize.match import topk
-
     if isinstance(scores, tuple):
         idx = np.asarray(scores[0], dtype=np.int64)
         sim = np.asarray(scores[1], dtype=np.float64)
@@ -322,21 +320,30 @@ def _summarise(protocol: str, idx: I64, best: I64, conf: F64, correct: BoolArray
     )
 
 
+def _protocol_inputs(
+    scores: Scores, truth: Truth, map_mask: npt.ArrayLike, ns: Sequence[int], *, masked: bool
+) -> tuple[BoolArray, list[set[int]], I64, F64]:
+    """What both protocols start from: the map mask, the truth sets and the ranked candidates
+    (searched in the map only when ``masked``, else in the full database)."""
+    mask = _map_mask(map_mask)
+    sets = _check_truth(truth, len(truth), mask.shape[0])
+    idx, sim = _ranked(scores, max(ns), mask if masked else None, mask.shape[0])
+    if idx.shape[0] != len(sets):
+        raise EvaluationError(f"{idx.shape[0]} queries scored but truth has {len(sets)} entries")
+    return mask, sets, idx, sim
+
+
 def evaluate_map_only(
     scores: Scores, truth: Truth, map_mask: npt.ArrayLike, ns: Sequence[int] = (1, 5, 10)
 ) -> ProtocolResult:
     """Map-only protocol: the database is the map frames only.
 
     ``scores`` is the full similarity matrix ``[Q, R]`` (masked here) or ``(indices, sims)``
-    from :func:`memlog.localize.match.match` with ``ref_mask=map_mask``. A query is correct
+    from :func:`memlog.descriptors.search.match` with ``ref_mask=map_mask``. A query is correct
     iff its best map frame is in its truth set (truth over the full database); queries whose
     true places were all discarded stay positives and can only be wrong.
     """
-    mask = _map_mask(map_mask)
-    sets = _check_truth(truth, len(truth), mask.shape[0])
-    idx, sim = _ranked(scores, max(ns), mask, mask.shape[0])
-    if idx.shape[0] != len(sets):
-        raise EvaluationError(f"{idx.shape[0]} queries scored but truth has {len(sets)} entries")
+    mask, sets, idx, sim = _protocol_inputs(scores, truth, map_mask, ns, masked=True)
     best = idx[:, 0]
     conf = np.where(best >= 0, sim[:, 0], -np.inf)
     correct = np.array([b >= 0 and int(b) in s for b, s in zip(best, sets)], dtype=bool)
@@ -361,11 +368,7 @@ def evaluate_paper(
     """
     if discarded not in ("false_negative", "true_negative"):
         raise EvaluationError(f"discarded must be 'false_negative' or 'true_negative', not {discarded!r}")
-    mask = _map_mask(map_mask)
-    sets = _check_truth(truth, len(truth), mask.shape[0])
-    idx, sim = _ranked(scores, max(ns), None, mask.shape[0])
-    if idx.shape[0] != len(sets):
-        raise EvaluationError(f"{idx.shape[0]} queries scored but truth has {len(sets)} entries")
+    mask, sets, idx, sim = _protocol_inputs(scores, truth, map_mask, ns, masked=False)
     best = idx[:, 0]
     reported = (best >= 0) & mask[np.maximum(best, 0)]
     conf = np.where(reported, sim[:, 0], -np.inf)
@@ -444,17 +447,8 @@ def truth_from_positions(
         fin = both[np.all(np.isfinite(both), axis=1)]
         if fin.size and (np.abs(fin[:, 0]).max() > 90 or np.abs(fin[:, 1]).max() > 360):
             raise EvaluationError("geographic positions must be (lat, lon) in degrees")
-        lat0 = float(fin[:, 0].mean()) if fin.size else 0.0
-        lon0 = float(np.degrees(np.arctan2(np.sin(np.radians(fin[:, 1])).mean(), np.cos(np.radians(fin[:, 1])).mean()))) if fin.size else 0.0
-
-        def project(p: F64) -> F64:
-            dlon = (p[:, 1] - lon0 + 180.0) % 360.0 - 180.0
-            x = EARTH_RADIUS_M * np.radians(dlon) * math.cos(math.radians(lat0))
-            y = EARTH_RADIUS_M * np.radians(p[:, 0] - lat0)
-            out: F64 = np.stack([x, y], axis=1)
-            return out
-
-        q, r = project(q), project(r)
+        origin = geo_origin(both)
+        q, r = geo_to_local(q, origin), geo_to_local(r, origin)
     out: list[set[int]] = []
     r_ok = np.all(np.isfinite(r), axis=1)
     r_idx = np.flatnonzero(r_ok)

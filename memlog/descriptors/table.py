@@ -1,0 +1,85 @@
+"""A table of descriptors: one row per frame with its identity, scores and position.
+
+:class:`DescriptorTable` is what describing a log produces (:mod:`memlog.descriptors.extract`),
+what a map's reference descriptors are, and what localization matches against; it is stored as
+Parquet by :mod:`memlog.outputs.descriptor_table`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from memlog.descriptors.base import DescriptorMeta
+from memlog.errors import DescriptorError
+
+__all__ = ["DescriptorTable", "POSITION_COLUMNS", "SCORE_COLUMNS"]
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+#: Allowed position column sets: geographic (degrees, metres) or local (metres).
+POSITION_COLUMNS: dict[str, tuple[str, ...]] = {"geo": ("lat", "lon", "alt"), "local": ("x", "y", "z")}
+SCORE_COLUMNS = ("ms", "ss", "es")
+
+
+@dataclass
+class DescriptorTable:
+    """Descriptors of ``N`` frames with their identities, scores, positions and metadata.
+
+    ``descriptors`` is ``[N, dim]`` float32; ``ms``/``ss``/``es`` are float64 with NaN for
+    "not scored"; ``positions`` maps column names of one :data:`POSITION_COLUMNS` set to
+    float64 arrays (NaN = unknown). ``extra`` is caller metadata stored as JSON.
+    """
+
+    topic: list[str]
+    frame_index: I64
+    log_time_ns: I64
+    stamp_ns: I64
+    descriptors: npt.NDArray[np.float32]
+    meta: DescriptorMeta
+    ms: F64 | None = None
+    ss: F64 | None = None
+    es: F64 | None = None
+    positions: dict[str, F64] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+    memlog_version: str | None = None
+
+    def __post_init__(self) -> None:
+        self.descriptors = np.ascontiguousarray(self.descriptors, dtype=np.float32)
+        if self.descriptors.ndim != 2:
+            raise DescriptorError(f"descriptors must be [N, dim], got shape {self.descriptors.shape}")
+        n, dim = self.descriptors.shape
+        if dim != self.meta.dim:
+            raise DescriptorError(f"descriptors have dim {dim} but the metadata says {self.meta.dim}")
+        self.topic = [str(t) for t in self.topic]
+        self.frame_index = np.asarray(self.frame_index, dtype=np.int64)
+        self.log_time_ns = np.asarray(self.log_time_ns, dtype=np.int64)
+        self.stamp_ns = np.asarray(self.stamp_ns, dtype=np.int64)
+        for name in SCORE_COLUMNS:
+            val = getattr(self, name)
+            setattr(self, name, np.full(n, np.nan) if val is None else np.asarray(val, dtype=np.float64))
+        self.positions = {k: np.asarray(v, dtype=np.float64) for k, v in self.positions.items()}
+        used = [kind for kind, cols in POSITION_COLUMNS.items() if set(self.positions) & set(cols)]
+        unknown = set(self.positions) - {c for cols in POSITION_COLUMNS.values() for c in cols}
+        if unknown or len(used) > 1:
+            raise DescriptorError(
+                f"positions must use columns of one set {POSITION_COLUMNS}, got {sorted(self.positions)}"
+            )
+        columns: dict[str, Any] = {
+            "topic": self.topic,
+            "frame_index": self.frame_index,
+            "log_time_ns": self.log_time_ns,
+            "stamp_ns": self.stamp_ns,
+            **{s: getattr(self, s) for s in SCORE_COLUMNS},
+            **self.positions,
+        }
+        for name, col in columns.items():
+            if len(col) != n or (isinstance(col, np.ndarray) and col.ndim != 1):
+                raise DescriptorError(f"column {name} has {len(col)} values for {n} descriptors")
+
+    def __len__(self) -> int:
+        return int(self.descriptors.shape[0])

@@ -1,1 +1,0 @@
-"""memlog.evaluate."""

@@ -1,0 +1,39 @@
+"""A camera frame streamed from a log: where it came from, and its pixels on request."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from memlog.io.image import decode_bgr, decode_gray
+from memlog.io.types import ImagePayload
+
+__all__ = ["Frame"]
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera message, with where it came from.
+
+    ``index`` is the position of the message on its topic, counted from 0 in
+    log-time order (the spec's frame index); ``stamp_ns`` is the header stamp
+    (``log_time_ns`` when the message has no header).
+    """
+
+    topic: str
+    index: int
+    log_time_ns: int
+    stamp_ns: int
+    frame_id: str
+    payload: ImagePayload
+    msgtype: str = ""
+
+    def decode_bgr(self) -> npt.NDArray[np.uint8]:
+        """Decode the payload to an HxWx3 uint8 BGR array (see :mod:`memlog.io.image`)."""
+        return decode_bgr(self.payload)
+
+    def decode_gray(self) -> npt.NDArray[np.uint8]:
+        """Decode the payload to an HxW uint8 grey array (see :mod:`memlog.io.image`)."""
+        return decode_gray(self.payload)

@@ -1,0 +1,35 @@
+"""The identity of an input log, so caches and resumable outputs are keyed on what they were made from.
+
+:func:`log_identity` is the resolved path, the size in bytes and the modification time (ns) of a
+log file, or of every file of a ROS 2 bag directory. Two identities are equal only when the
+same files have the same sizes and times: a different log, or the same path rewritten, refuses
+the cache.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+__all__ = ["log_identity", "same_identity"]
+
+
+def log_identity(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """``{"path", "size", "mtime_ns"}`` of a log file or bag directory (JSON-ready)."""
+    p = Path(path).resolve()
+    if p.is_dir():
+        files = sorted(f for f in p.rglob("*") if f.is_file())
+        stats = [f.stat() for f in files]
+        return {"path": str(p), "size": sum(s.st_size for s in stats),
+                "mtime_ns": max((s.st_mtime_ns for s in stats), default=0), "files": len(files)}
+    st = p.stat()
+    return {"path": str(p), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def same_identity(recorded: Any, path: str | os.PathLike[str]) -> bool:
+    """Whether ``recorded`` (a :func:`log_identity` read back) still describes ``path``."""
+    try:
+        return isinstance(recorded, dict) and recorded == log_identity(path)
+    except OSError:
+        return False

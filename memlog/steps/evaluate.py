@@ -1,0 +1,412 @@
+"""Pipeline step ``evaluate``: does the memorable map help localization?
+
+Given a reference log, a query log and ground truth (a JSON ``matches`` file, or positions in
+both logs with a distance tolerance), it scores the reference with every score
+(``OUT/reference.scored.mcap``), describes both drives (``OUT/{reference,query}.<kind>.parquet``),
+writes the memorable-map log (``OUT/map.mcap`` + ``OUT/map.parquet``) and evaluates, under the
+map-only and the paper protocol, the full map, the memorable map (exactly the frames the map
+step kept) and the baselines of the same size (uniform; random, 20 seeds). It adds the paper's
+threshold sweeps, the criterion contribution, map size and matching time, and writes
+``OUT/results.json`` and ``OUT/report.html``.
+
+Outputs already in OUT are reused only when they were made from the same input (path, size,
+modification time) with the same settings; the run says which it reused and which it refused.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from memlog._version import __version__
+from memlog.descriptors.base import Describer, check_compatible
+from memlog.descriptors.extract import describe_log
+from memlog.descriptors.registry import DESCRIBERS, make_describer
+from memlog.descriptors.search import match, time_per_query
+from memlog.descriptors.table import DescriptorTable
+from memlog.errors import ConfigError, DescriptorError, EvaluationError, MemlogError
+from memlog.evaluation.metrics import (
+    ProtocolResult,
+    evaluate_map_only,
+    evaluate_paper,
+    parse_truth,
+    truth_from_positions,
+)
+from memlog.io.atomic import check_output
+from memlog.io.base import FrameWindow
+from memlog.io.identity import log_identity, same_identity
+from memlog.io.open import open_log
+from memlog.io.records import ReadReport
+from memlog.outputs.annotated import read_scores, run_config, run_input_identity
+from memlog.outputs.descriptor_table import read_descriptors, write_descriptors
+from memlog.outputs.results import write_results
+from memlog.progress import info
+from memlog.scoring.config import ScoreConfig
+from memlog.selection import ScoreTable, random_masks, uniform_mask
+from memlog.selection.config import SelectionConfig
+from memlog.selection.paper import first_failing
+from memlog.steps.map import MapConfig, make_map, score_table
+from memlog.steps.score import score
+
+__all__ = ["evaluate", "EvaluateConfig", "EvaluateResult", "SWEEP_STEPS"]
+
+SWEEP_STEPS = tuple(round(0.1 * i, 1) for i in range(11))
+_CRITERIA = {1: "staticity", 2: "entropy", 3: "memorability"}
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """Settings of an evaluation (scoring and selection have their own typed configs).
+
+    ``descriptor``: the VPR descriptor; ``tol_m``: position truth tolerance (metres); ``k``:
+    candidates per query; ``seeds``: random baselines; ``paper_discarded``: how the paper
+    protocol counts a query whose best match was discarded; ``reference_topic`` /
+    ``query_topic``: camera topics (default: the first); ``report``: write report.html.
+    """
+
+    score: ScoreConfig = field(default_factory=ScoreConfig)
+    select: SelectionConfig = field(default_factory=SelectionConfig)
+    descriptor: str = "thumbnail"
+    tol_m: float = 25.0
+    k: int = 10
+    seeds: int = 20
+    paper_discarded: Literal["false_negative", "true_negative"] = "false_negative"
+    reference_topic: str | None = None
+    query_topic: str | None = None
+    report: bool = True
+
+    def __post_init__(self) -> None:
+        if self.descriptor not in DESCRIBERS:
+            raise ConfigError(f"descriptor must be one of {', '.join(sorted(DESCRIBERS))}, got {self.descriptor!r}")
+        if not (isinstance(self.tol_m, (int, float)) and np.isfinite(self.tol_m) and self.tol_m >= 0):
+            raise ConfigError(f"tolerance must be a number >= 0 (metres), got {self.tol_m!r}")
+        for name, low in (("k", 1), ("seeds", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
+        if self.paper_discarded not in ("false_negative", "true_negative"):
+            raise ConfigError(f"paper_discarded must be false_negative or true_negative, got {self.paper_discarded!r}")
+
+    def options(self) -> dict[str, Any]:
+        """The settings other than scoring and selection, JSON-ready."""
+        return {k: v for k, v in asdict(self).items() if k not in ("score", "select")}
+
+
+@dataclass
+class EvaluateResult:
+    """What ``results.json`` holds (``results``; also indexable: ``res["memorable"]``) and the
+    read reports of the logs read in this run (damage found)."""
+
+    results: dict[str, Any]
+    reports: list[ReadReport] = field(default_factory=list)
+
+    def __getitem__(self, key: str) -> Any:
+        return self.results[key]
+
+
+def _proto(r: ProtocolResult) -> dict[str, Any]:
+    return {"auc": r.auc, "recall@1": r.recall_at.get(1), "recall@5": r.recall_at.get(5),
+            "recall@10": r.recall_at.get(10), "precision@100%recall": r.precision_at_full_recall,
+            "coverage": r.coverage}
+
+
+def _evaluate_mask(ref: DescriptorTable, q: DescriptorTable, truth: list[set[int]], mask: np.ndarray,
+                   full_idx: np.ndarray, full_sim: np.ndarray, cfg: EvaluateConfig
+                   ) -> tuple[dict[str, Any], ProtocolResult, ProtocolResult]:
+    k = min(cfg.k, max(1, int(mask.sum())))
+    ns = tuple(n for n in (1, 5, 10) if n <= max(k, 1))
+    idx, sim = match(q.descriptors, ref.descriptors, k=max(ns), ref_mask=mask)
+    mo = evaluate_map_only((idx, sim), truth, mask, ns=ns)
+    po = evaluate_paper((full_idx[:, : max(ns)], full_sim[:, : max(ns)]), truth, mask, ns=ns,
+                        discarded=cfg.paper_discarded)
+    timing = time_per_query(q.descriptors, ref.descriptors, repeats=3, ref_mask=mask, max_queries=50)
+    out = {"frames": int(mask.sum()), **_proto(mo), "match_seconds_per_query": timing.seconds_per_query,
+           "paper_protocol": _proto(po)}
+    return out, mo, po
+
+
+def _rows_for(table: DescriptorTable, n_frames: int) -> np.ndarray:
+    """Row of each frame index 0..n-1 in ``table`` (-1 when the frame was not described)."""
+    rows = np.full(n_frames, -1, dtype=np.int64)
+    ok = table.frame_index < n_frames
+    rows[table.frame_index[ok]] = np.nonzero(ok)[0]
+    return rows
+
+
+def _truth_rows(truth_frames: list[set[int]], q: DescriptorTable, ref_rows: np.ndarray) -> list[set[int]]:
+    """Truth re-indexed from frame indices to descriptor rows (queries = rows of q)."""
+    out = []
+    for fi in q.frame_index:
+        s = truth_frames[int(fi)] if int(fi) < len(truth_frames) else set()
+        out.append({int(ref_rows[j]) for j in s if j < len(ref_rows) and ref_rows[j] >= 0})
+    return out
+
+
+def _reuse_scores(path: Path, reference: str, cfg: ScoreConfig, topic: str | None) -> bool:
+    """Whether OUT/reference.scored.mcap was made from this reference log with this config."""
+    if not path.is_file():
+        return False
+    try:
+        used = run_config(path)
+        ident = run_input_identity(path)
+    except MemlogError as exc:  # an unreadable cache is simply not reused
+        info(f"memlog: not reusing {path}: it does not read ({exc})")
+        return False
+    if not same_identity(ident, reference):
+        info(f"memlog: not reusing {path}: it was scored from another reference log (or {reference} changed)")
+        return False
+    if used is None or used.replace(threads=0, device="auto") != cfg.replace(threads=0, device="auto"):
+        info(f"memlog: not reusing {path}: it was scored with other settings")
+        return False
+    if topic is not None and topic not in read_scores(path):
+        info(f"memlog: not reusing {path}: it has no scores for {topic}")
+        return False
+    info(f"memlog: reusing {path} (same reference log and scoring settings)")
+    return True
+
+
+def _described(log: str, path: Path, describer: Describer, topic: str | None, reports: list[ReadReport],
+               scores: dict[str, dict[int, dict[str, Any]]] | None = None) -> DescriptorTable:
+    """Descriptors of ``log`` (cached at ``path`` when made from the same log and describer)."""
+    if path.is_file():
+        try:
+            t = read_descriptors(path)
+            check_compatible(t.meta, describer.meta())
+            if not same_identity(t.extra.get("log_identity"), log):
+                info(f"memlog: not reusing {path}: made from another log (or {log} changed)")
+            elif topic is not None and (t.extra.get("window") or {}).get("topics") != [topic]:
+                info(f"memlog: not reusing {path}: made from another topic")
+            else:
+                info(f"memlog: reusing {path}")
+                return t
+        except DescriptorError as exc:
+            info(f"memlog: not reusing {path}: {exc}")
+    t, report = describe_log(log, describer, FrameWindow((topic,) if topic else None), scores=scores)
+    reports.append(report)
+    write_descriptors(path, t)
+    return t
+
+
+def _frame_counts(log: str, topic: str | None) -> tuple[str, int | None]:
+    """The camera topic evaluated in ``log`` and its number of frames (from the index)."""
+    with open_log(log) as reader:
+        cams = reader.check_camera_topics([topic] if topic else None)
+        if not cams:
+            raise EvaluationError(f"{log}: no camera topic")
+        t = cams[0]
+        return t, reader.count_frames(FrameWindow((t,)))
+
+
+def _check_truth_fits(truth: list[set[int]], source: str, n_query: int | None, n_ref: int | None) -> None:
+    """Refuse a truth file whose length or indices do not fit the logs (before any scoring)."""
+    if n_query is not None and len(truth) != n_query:
+        raise EvaluationError(f"--truth {source}: \"matches\" has {len(truth)} entries but the query topic has "
+                              f"{n_query} frames (one entry per query frame)")
+    if n_ref is not None:
+        for q, s in enumerate(truth):
+            bad = [i for i in s if i >= n_ref]
+            if bad:
+                raise EvaluationError(f"--truth {source}: matches[{q}] names reference frame {min(bad)}, but the "
+                                      f"reference topic has {n_ref} frames (0..{n_ref - 1})")
+    if not any(truth):
+        raise EvaluationError(f"--truth {source}: no query has a true match; every metric would be 0")
+
+
+def evaluate(
+    reference: str | os.PathLike[str],
+    query: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    config: EvaluateConfig | None = None,
+    *,
+    truth: str | os.PathLike[str] | None = None,
+) -> EvaluateResult:
+    """Run the evaluation (see module doc); returns what is written to ``results.json``."""
+    t_start = time.perf_counter()
+    cfg = config or EvaluateConfig()
+    score_cfg = cfg.score.replace(all_scores=True)
+    reference, query = str(reference), str(query)
+    out = check_output(out_dir, [reference, query] + ([truth] if truth else []), directory=True)
+    # everything a user can get wrong is checked before the reference is scored
+    ref_topic, n_ref = _frame_counts(reference, cfg.reference_topic)
+    q_topic, n_q = _frame_counts(query, cfg.query_topic)
+    truth_frames: list[set[int]] | None = None
+    if truth is not None:
+        truth_frames = parse_truth(truth)
+        _check_truth_fits(truth_frames, str(truth), n_q, n_ref)
+    describer = make_describer(cfg.descriptor)
+    out.mkdir(exist_ok=True)
+    if not cfg.report:
+        (out / "report.html").unlink(missing_ok=True)  # never leave an older report beside new results
+    (out / "results.json").unlink(missing_ok=True)
+
+    # 1. score the reference drive (every score: sweeps and calibration need them)
+    reports: list[ReadReport] = []
+    scored = out / "reference.scored.mcap"
+    if not _reuse_scores(scored, reference, score_cfg, ref_topic):
+        reports.append(score(reference, scored, score_cfg, FrameWindow((ref_topic,))).report)
+    recs = read_scores(scored)[ref_topic]
+    score_by_frame = {ref_topic: {r["frame_index"]: r for r in recs}}
+
+    # 2. descriptors of every reference and query frame
+    ref_t = _described(reference, out / f"reference.{cfg.descriptor}.parquet", describer, ref_topic, reports,
+                       score_by_frame)
+    q_t = _described(query, out / f"query.{cfg.descriptor}.parquet", describer, q_topic, reports)
+    n_ref_rows = int(ref_t.frame_index.max()) + 1 if len(ref_t) else 0
+
+    # 3. ground truth, as descriptor rows
+    if truth_frames is not None:
+        truth_src = str(truth)
+    else:
+        truth_frames = _position_truth(ref_t, q_t, cfg.tol_m)
+        truth_src = f"positions within {cfg.tol_m} m"
+    ref_rows = _rows_for(ref_t, max(n_ref_rows, max((max(s) + 1 for s in truth_frames if s), default=0)))
+    truth_rows = _truth_rows(truth_frames, q_t, ref_rows)
+
+    # 4. the memorable map, selected once: the metrics describe exactly the map written
+    map_res = make_map(reference, out / "map.mcap",
+                       MapConfig(score=score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=cfg.descriptor),
+                       scores=scored)
+    sel = map_res.selections[ref_topic]
+    mask = np.isin(ref_t.frame_index, sel.kept_indices)
+    table = score_table([score_by_frame[ref_topic][int(i)] for i in ref_t.frame_index], ref_topic)
+
+    # 5. variants under both protocols
+    full_idx, full_sim = match(q_t.descriptors, ref_t.descriptors, k=cfg.k)
+    results: dict[str, Any] = {"memlog_version": __version__}
+    per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
+    kk = int(mask.sum())
+    variants = {"full": np.ones(len(ref_t), bool), "memorable": mask, "uniform": uniform_mask(len(ref_t), kk)}
+    for name, m in variants.items():
+        res, mo, po = _evaluate_mask(ref_t, q_t, truth_rows, m, full_idx, full_sim, cfg)
+        results[name] = res
+        per_variant[name] = (mo, po)
+    results["memorable"].update({"thresholds": sel.thresholds, "select": cfg.select.mode,
+                                 "keep_fraction": cfg.select.keep_fraction, "gaps": len(sel.gaps)})
+    rand = [_evaluate_mask(ref_t, q_t, truth_rows, m, full_idx, full_sim, cfg)[0]
+            for m in random_masks(len(ref_t), kk, range(cfg.seeds))]
+    results["random"] = _mean_std(rand)
+
+    # 6. sweeps, contribution, size and time
+    results["sweeps"] = _sweeps(table, ref_t, q_t, truth_rows, full_idx, full_sim, cfg)
+    th = sel.thresholds if cfg.select.mode == "paper" and sel.thresholds else cfg.select.thresholds
+    results["criterion_contribution"] = _contribution(table, per_variant["full"][0], th)
+    results["map_size"] = map_res.to_dict()
+    results["map_size"].pop("topics", None)
+    results["truth"] = truth_src
+    results["settings"] = {"score": score_cfg.to_dict(), "select": cfg.select.to_dict(),
+                           "descriptor": describer.meta().to_dict(), "options": cfg.options(),
+                           "reference": reference, "query": query, "reference_topic": ref_topic,
+                           "query_topic": q_topic,
+                           "inputs": {"reference": log_identity(reference), "query": log_identity(query)},
+                           "protocols": {
+                               "map-only": "only map frames are searched; a query is correct iff its best map frame "
+                                           "is in its truth set; queries whose true places are all missing from "
+                                           "the map stay positives and can only be wrong",
+                               "paper": "the full reference database is searched; a query whose best match is a "
+                                        "discarded frame reports no match (never accepted at any threshold); with "
+                                        "discarded=false_negative it still counts in the recall denominator",
+                           }}
+    results["seconds"] = round(time.perf_counter() - t_start, 1)
+    write_results(out / "results.json", results)
+    if cfg.report:
+        from memlog.outputs.report import write_report
+
+        write_report(out / "report.html", results, table, sel, per_variant, ref_t, reference, ref_topic)
+    if map_res.report is not None:
+        reports.append(map_res.report)
+    return EvaluateResult(results, reports)
+
+
+def _position_truth(ref_t: DescriptorTable, q_t: DescriptorTable, tol_m: float) -> list[set[int]]:
+    """Truth by position, indexed by frame index (like a truth file)."""
+    def arr(t: DescriptorTable) -> tuple[np.ndarray, bool]:
+        p = t.positions
+        if "lat" in p:
+            return np.stack([p["lat"], p["lon"]], axis=1), True
+        if "x" in p:
+            return np.stack([p["x"], p["y"]], axis=1), False
+        raise EvaluationError("no --truth file and the logs have no positions (NavSatFix, pose or odometry)")
+
+    qp, geo_q = arr(q_t)
+    rp, geo_r = arr(ref_t)
+    if geo_q != geo_r:
+        raise EvaluationError("reference and query positions are in different frames (GNSS vs local pose)")
+    rows = truth_from_positions(qp, rp, tol_m, geographic=geo_q)
+    n_q = int(q_t.frame_index.max()) + 1
+    by_frame: list[set[int]] = [set() for _ in range(n_q)]
+    for r, s in enumerate(rows):
+        by_frame[int(q_t.frame_index[r])] = {int(ref_t.frame_index[j]) for j in s}
+    return by_frame
+
+
+def _mean_std(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    def agg(key_path: tuple[str, ...]) -> tuple[float, float]:
+        vals = []
+        for r in rows:
+            v: Any = r
+            for k in key_path:
+                v = v[k]
+            vals.append(np.nan if v is None else float(v))
+        a = np.asarray(vals)
+        return float(np.nanmean(a)), float(np.nanstd(a))
+
+    out: dict[str, Any] = {"frames": rows[0]["frames"], "seeds": len(rows), "std": {}}
+    for key in ("coverage", "auc", "recall@1", "recall@5", "recall@10", "precision@100%recall",
+                "match_seconds_per_query"):
+        if rows[0].get(key) is None:
+            out[key] = None
+            continue
+        out[key], out["std"][key] = agg((key,))
+    out["paper_protocol"] = {"std": {}}
+    for key in ("auc", "recall@1", "recall@5", "recall@10", "coverage"):
+        if rows[0]["paper_protocol"].get(key) is None:
+            continue
+        m, s = agg(("paper_protocol", key))
+        out["paper_protocol"][key] = m
+        out["paper_protocol"]["std"][key] = s
+    return out
+
+
+def _sweeps(table: ScoreTable, ref_t: DescriptorTable, q_t: DescriptorTable, truth_rows: list[set[int]],
+            full_idx: np.ndarray, full_sim: np.ndarray, cfg: EvaluateConfig) -> dict[str, list[dict[str, Any]]]:
+    """The paper's sweeps: each threshold from 0 to 1 by 0.1 with the other two at 0."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    for name in ("mt", "st", "et"):
+        rows = []
+        for v in SWEEP_STEPS:
+            th = {"mt": 0.0, "st": 0.0, "et": 0.0, name: v}
+            keep = first_failing(table, th["mt"], th["st"], th["et"]) == 0
+            row: dict[str, Any] = {"threshold": v, "frames": int(keep.sum())}
+            if keep.any():
+                ns = (1,)
+                idx, sim = match(q_t.descriptors, ref_t.descriptors, k=1, ref_mask=keep)
+                mo = evaluate_map_only((idx, sim), truth_rows, keep, ns=ns)
+                po = evaluate_paper((full_idx[:, :1], full_sim[:, :1]), truth_rows, keep, ns=ns,
+                                    discarded=cfg.paper_discarded)
+                row.update({"auc": mo.auc, "recall@1": mo.recall_at[1], "coverage": mo.coverage,
+                            "paper_auc": po.auc, "paper_recall@1": po.recall_at[1]})
+            else:
+                row.update({"auc": 0.0, "recall@1": 0.0, "coverage": 0.0, "paper_auc": 0.0, "paper_recall@1": 0.0})
+            rows.append(row)
+        out[name] = rows
+    return out
+
+
+def _contribution(table: ScoreTable, full: ProtocolResult, th: dict[str, float]) -> dict[str, Any]:
+    """Of the queries the full map mismatched, which criterion would have discarded their (wrong) best match."""
+    codes = first_failing(table, th["mt"], th["st"], th["et"])
+    wrong = ~full.correct & (full.best_index >= 0)
+    counts = {"staticity": 0, "entropy": 0, "memorability": 0, "kept": 0}
+    for b in full.best_index[wrong]:
+        c = int(codes[int(b)])
+        counts[_CRITERIA.get(c, "kept")] += 1
+    return {"mismatched_queries": int(wrong.sum()), "wrong_match_discarded_by": counts,
+            "thresholds": dict(th),
+            "note": "for each query the full map mismatched, the first criterion (staticity, entropy, "
+                    "memorability) that the paper's rule at these thresholds fails for the wrongly matched "
+                    "reference frame; 'kept' = that frame passes all three"}

@@ -1,0 +1,149 @@
+"""Pipeline step ``localize``: match a query log against a map's reference descriptors.
+
+:func:`localize` describes the query frames the way the map was described, finds the best map
+frames of every query frame (exact search), writes the match table (Parquet or CSV, with the
+map topic of each match and the map file, descriptor and settings as metadata), optionally an
+annotated copy of the query log with a ``T/memlog/match`` channel, and times matching one query
+against the map. Query descriptors can be cached (``query_descriptors``): the cache is reused
+only when it was made from the same query log (path, size, modification time), window and
+descriptor, and the run says whether it was reused or refused.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from memlog.descriptors.base import Describer, check_compatible
+from memlog.descriptors.extract import describe_log
+from memlog.descriptors.registry import make_describer
+from memlog.descriptors.search import QueryTiming, confidence, match, time_per_query
+from memlog.descriptors.table import DescriptorTable
+from memlog.errors import ConfigError, DescriptorError
+from memlog.io.atomic import check_output
+from memlog.io.base import FrameWindow
+from memlog.io.identity import same_identity
+from memlog.io.records import ReadReport
+from memlog.outputs.descriptor_table import read_descriptors, write_descriptors
+from memlog.outputs.matches import write_match_log, write_matches
+from memlog.progress import info
+
+__all__ = ["localize", "LocalizeConfig", "LocalizeResult", "describer_for"]
+
+
+@dataclass(frozen=True)
+class LocalizeConfig:
+    """``k`` reference frames per query; which query frames (``window``)."""
+
+    k: int = 5
+    window: FrameWindow = FrameWindow()
+
+    def __post_init__(self) -> None:
+        if isinstance(self.k, bool) or not isinstance(self.k, int) or self.k < 1:
+            raise ConfigError(f"k must be an integer >= 1, got {self.k!r}")
+
+
+def describer_for(table: DescriptorTable) -> Describer:
+    """A describer that makes descriptors comparable with ``table`` (same kind and params)."""
+    d = make_describer(table.meta.kind, **table.meta.params)
+    check_compatible(table.meta, d.meta())
+    return d
+
+
+@dataclass
+class LocalizeResult:
+    """What :func:`localize` wrote."""
+
+    output: Path
+    n_queries: int
+    n_map: int
+    k: int
+    timing_map: QueryTiming
+    annotated: Path | None
+    query_descriptors_reused: bool = False
+    reports: list[ReadReport] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "output": str(self.output), "n_queries": self.n_queries, "n_map": self.n_map, "k": self.k,
+            "match_seconds_per_query": self.timing_map.to_dict(),
+            "annotated": str(self.annotated) if self.annotated else None,
+            "query_descriptors_reused": self.query_descriptors_reused,
+        }
+
+
+def _cached_query(path: Path, query_log: str | os.PathLike[str], ref: DescriptorTable,
+                  window: FrameWindow) -> DescriptorTable | None:
+    """The cached query descriptors at ``path`` when they fit this query, else None (and why)."""
+    if not path.is_file():
+        return None
+    try:
+        qt = read_descriptors(path)
+        check_compatible(ref.meta, qt.meta)
+    except DescriptorError as exc:
+        info(f"memlog: not reusing {path}: {exc}")
+        return None
+    if not same_identity(qt.extra.get("log_identity"), query_log):
+        info(f"memlog: not reusing {path}: it was made from another query log (or {query_log} changed)")
+        return None
+    if qt.extra.get("window") != _window_of(qt, window):
+        info(f"memlog: not reusing {path}: it was made with other topics, time window or stride")
+        return None
+    info(f"memlog: reusing query descriptors {path} (same query log, window and descriptor)")
+    return qt
+
+
+def _window_of(qt: DescriptorTable, window: FrameWindow) -> dict[str, Any]:
+    """The window ``describe_log`` records for ``window`` (topics resolved as it resolves them)."""
+    topics = window.topics if window.topics is not None else tuple(qt.extra.get("window", {}).get("topics") or ())
+    return FrameWindow(tuple(topics), window.start_ns, window.end_ns, window.stride).to_dict()
+
+
+def localize(
+    map_descriptors: str | os.PathLike[str],
+    query_log: str | os.PathLike[str],
+    output: str | os.PathLike[str],
+    config: LocalizeConfig | None = None,
+    *,
+    annotate: str | os.PathLike[str] | None = None,
+    query_descriptors: str | os.PathLike[str] | None = None,
+) -> LocalizeResult:
+    """Match every frame of ``query_log`` against the map (see module doc)."""
+    cfg = config or LocalizeConfig()
+    inputs = [map_descriptors, query_log]
+    check_output(output, inputs)
+    if annotate is not None:
+        check_output(annotate, inputs + [output], flag="--annotate")
+    if query_descriptors is not None:
+        check_output(query_descriptors, [*inputs, output] + ([annotate] if annotate else []),
+                     flag="--query-descriptors")
+    ref = read_descriptors(map_descriptors)
+    if len(ref) == 0:
+        raise DescriptorError(f"{map_descriptors}: the map has no descriptors")
+    qt = _cached_query(Path(query_descriptors), query_log, ref, cfg.window) if query_descriptors else None
+    reused = qt is not None
+    reports: list[ReadReport] = []
+    if qt is None:
+        qt, report = describe_log(query_log, describer_for(ref), cfg.window)
+        reports.append(report)
+        if query_descriptors is not None:
+            write_descriptors(query_descriptors, qt)
+    idx, sims = match(qt.descriptors, ref.descriptors, k=min(cfg.k, len(ref)))
+    conf = confidence(sims)
+    out = write_matches(
+        output, idx, sims, query_ids=qt.frame_index, ref_ids=ref.frame_index,
+        query_columns={"query_topic": np.array(qt.topic), "query_log_time_ns": qt.log_time_ns,
+                       "confidence": conf.best, "margin": conf.margin, "ratio": conf.ratio},
+        ref_columns={"ref_topic": np.array(ref.topic), "ref_log_time_ns": ref.log_time_ns},
+        metadata={"map": str(Path(map_descriptors).resolve()), "query_log": str(Path(query_log).resolve()),
+                  "descriptor": ref.meta.to_dict(), "k": cfg.k, "window": qt.extra.get("window")},
+    )
+    timing_map = time_per_query(qt.descriptors, ref.descriptors, repeats=3)
+    annotated = None
+    if annotate is not None:
+        annotated = write_match_log(query_log, annotate, qt, ref, idx, sims, conf.best)
+    return LocalizeResult(out, len(qt), len(ref), cfg.k, timing_map, annotated, reused, reports)

@@ -1,0 +1,325 @@
+"""Pipeline step ``map``: the memorable-map log (kept frames only) and its reference descriptors.
+
+:func:`make_map` scores the log (or reuses an annotated MCAP from ``memlog score``), builds a
+:class:`~memlog.selection.ScoreTable` per camera topic (with positions from a GNSS/pose topic
+when the log has one), selects frames once (:class:`~memlog.selection.config.SelectionConfig`)
+and writes, in one more pass over the log,
+
+* ``MAP.mcap`` (:class:`~memlog.outputs.maplog.MapLogWriter`): the selected frames, their score
+  records, the topics kept whole and metadata ``memlog_map``;
+* ``MAP.parquet`` (:mod:`memlog.outputs.descriptor_table`): one reference descriptor per kept
+  frame, described in batches while the map is written.
+
+The :class:`MapResult` carries the selections, so ``evaluate`` measures exactly the map written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from memlog._version import __version__
+from memlog.descriptors.base import Describer
+from memlog.descriptors.extract import build_table
+from memlog.descriptors.registry import make_describer
+from memlog.errors import ConfigError, ImageDecodeError, SelectionError
+from memlog.io.atomic import check_output
+from memlog.io.base import FrameWindow, LogReader
+from memlog.io.frame import Frame
+from memlog.io.open import open_log
+from memlog.io.positions import PositionTrack, read_track
+from memlog.io.records import ReadReport
+from memlog.io.types import ImagePayload
+from memlog.outputs.annotated import read_scores, run_config, scores_message
+from memlog.outputs.descriptor_table import write_descriptors
+from memlog.outputs.maplog import MapLogWriter
+from memlog.progress import progress
+from memlog.scoring.config import ScoreConfig
+from memlog.scoring.scorer import Scorer
+from memlog.selection import ScoreTable, Selection
+from memlog.selection.config import SelectionConfig
+from memlog.steps.score import iter_scores
+
+__all__ = ["make_map", "MapConfig", "MapResult", "score_table", "EmptyMapError", "collect_scores"]
+
+Records = dict[str, list[dict[str, Any]]]
+
+
+class EmptyMapError(SelectionError):
+    """No frame passed the selection."""
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Settings of the map step (the ``[map]`` table; scoring and selection have their own).
+
+    ``topics``: camera topics to map (default: every camera topic); ``keep_topics``: topics
+    copied whole (GPS, odometry); ``position_topic``: NavSatFix/pose/odometry topic for
+    positions (default: the first found); ``image_format``/``jpeg_quality``: how raw frames
+    are encoded; ``descriptor``: reference descriptor kind (None: no descriptors);
+    ``descriptors_path``: the Parquet file (default: the map path with ``.parquet``).
+    """
+
+    score: ScoreConfig = field(default_factory=ScoreConfig)
+    select: SelectionConfig = field(default_factory=SelectionConfig)
+    topics: tuple[str, ...] | None = None
+    keep_topics: tuple[str, ...] = ()
+    position_topic: str | None = None
+    image_format: Literal["jpeg", "png"] = "jpeg"
+    jpeg_quality: int = 90
+    descriptor: str | None = "thumbnail"
+    descriptors_path: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.image_format not in ("jpeg", "png"):
+            raise ConfigError(f"image_format must be jpeg or png, got {self.image_format!r}")
+        q = self.jpeg_quality
+        if isinstance(q, bool) or not isinstance(q, int) or not 1 <= q <= 100:
+            raise ConfigError(f"jpeg_quality must be an integer in 1..100, got {q!r}")
+        if self.topics is not None:
+            object.__setattr__(self, "topics", tuple(self.topics))
+        object.__setattr__(self, "keep_topics", tuple(self.keep_topics))
+
+    def descriptors_file(self, output: str | os.PathLike[str]) -> Path | None:
+        """Where the reference descriptors go (None without a descriptor)."""
+        if self.descriptor is None:
+            return None
+        return Path(self.descriptors_path) if self.descriptors_path else Path(output).with_suffix(".parquet")
+
+
+@dataclass
+class MapResult:
+    """What :func:`make_map` wrote and which frames it kept (``selections`` per topic)."""
+
+    output: Path
+    descriptors: Path | None
+    selections: dict[str, Selection]
+    frames_in: int
+    frames_kept: int
+    bytes_in: int
+    bytes_out: int
+    thresholds: dict[str, float] = field(default_factory=dict)
+    seconds: float = 0.0
+    report: ReadReport | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "output": str(self.output), "descriptors": str(self.descriptors) if self.descriptors else None,
+            "frames_in": self.frames_in, "frames_kept": self.frames_kept,
+            "frame_fraction": self.frames_kept / max(self.frames_in, 1),
+            "bytes_in": self.bytes_in, "bytes_out": self.bytes_out,
+            "byte_fraction": self.bytes_out / max(self.bytes_in, 1), "thresholds": self.thresholds,
+            "seconds": round(self.seconds, 3),
+            "topics": {t: s.to_dict() for t, s in self.selections.items()},
+        }
+
+
+def _val(v: Any) -> float:
+    return float("nan") if v is None else float(v)
+
+
+def score_table(records: list[dict[str, Any]], topic: str, track: PositionTrack | None = None,
+                descriptors: np.ndarray | None = None) -> ScoreTable:
+    """A ScoreTable from score records (``T/memlog/scores`` messages) of one topic; records of
+    frames that did not decode are left out."""
+    recs = [r for r in records if r.get("rejected_by") != "undecodable"]
+    t = np.array([r["log_time"] for r in recs], dtype=np.int64)
+    pos = track.at(t.tolist()) if track is not None and len(recs) else None
+    if pos is not None and np.isnan(pos).all():
+        pos = None
+    return ScoreTable(
+        index=np.array([r["frame_index"] for r in recs], dtype=np.int64), t_ns=t,
+        ms=np.array([_val(r["ms"]) for r in recs]), ss=np.array([_val(r["ss"]) for r in recs]),
+        es=np.array([_val(r["es"]) for r in recs]), positions=pos, descriptors=descriptors, topic=topic,
+    )
+
+
+def collect_scores(
+    reader: LogReader, config: ScoreConfig, window: FrameWindow, *, thumbnails: dict[str, dict[int, np.ndarray]] | None = None
+) -> Records:
+    """Score the frames of ``window`` without writing them: score records per camera topic (as in
+    ``T/memlog/scores``). ``thumbnails`` (when given) receives each decoded frame's thumbnail
+    descriptor, for near-duplicate removal and view segments, from the same pass."""
+    scorer = Scorer(config).load()
+    thumb = make_describer("thumbnail") if thumbnails is not None else None
+    out: Records = {}
+    total = reader.count_frames(window)
+    for frame, s, err in progress(iter_scores(reader, scorer, window), total=total, desc="score", unit="frame"):
+        rec = scores_message(frame, s, config, err)
+        rec.pop("memorability", None)
+        out.setdefault(frame.topic, []).append(rec)
+        if thumb is not None and thumbnails is not None and s is not None:
+            thumbnails.setdefault(frame.topic, {})[frame.index] = thumb.describe([frame.decode_bgr()])[0]
+    return out
+
+
+def _thumbnails(reader: LogReader, topic: str, indices: set[int]) -> dict[int, np.ndarray]:
+    """Thumbnail descriptors of the given frames of ``topic`` (a pass over that topic)."""
+    d = make_describer("thumbnail")
+    out: dict[int, np.ndarray] = {}
+    for f in reader.frames([topic], indices={topic: indices}):
+        try:
+            out[f.index] = d.describe([f.decode_bgr()])[0]
+        except ImageDecodeError as exc:  # reported; it has no scores either
+            reader.decode_error(f, exc)
+    return out
+
+
+def _scores_from(scores: str | os.PathLike[str] | Records, cfg: MapConfig) -> Records:
+    if isinstance(scores, dict):
+        return scores
+    used = run_config(scores)
+    if cfg.select.needs_all_scores and used is not None and not (used.all_scores or used.mode == "paper"):
+        raise ConfigError(
+            f"--scores {scores}: scored with early exit, so skipped scores are missing; --keep-fraction and "
+            "--select segment need every score: run `memlog score --all-scores` first"
+        )
+    return read_scores(scores)
+
+
+def _stripped(frame: Frame) -> Frame:
+    """``frame`` without its pixels (kept for the descriptor table's rows)."""
+    return dataclasses.replace(frame, payload=ImagePayload(frame.payload.kind, frame.payload.encoding, b""))
+
+
+class _Describing:
+    """Describes kept frames in batches while the map is written (bounded memory)."""
+
+    def __init__(self, describer: Describer, reader: LogReader, batch: int = 16) -> None:
+        self.describer, self.reader, self.batch = describer, reader, batch
+        self.frames: list[Frame] = []
+        self.rows: list[np.ndarray] = []
+        self._pending: list[tuple[Frame, np.ndarray]] = []
+
+    def add(self, frame: Frame) -> None:
+        try:
+            img = frame.decode_bgr()
+        except ImageDecodeError as exc:
+            self.reader.decode_error(frame, exc)
+            return
+        self._pending.append((_stripped(frame), img))
+        if len(self._pending) >= self.batch:
+            self.flush()
+
+    def flush(self) -> None:
+        if self._pending:
+            self.rows.append(self.describer.describe([img for _, img in self._pending]))
+            self.frames.extend(f for f, _ in self._pending)
+            self._pending.clear()
+
+    def result(self) -> tuple[list[Frame], np.ndarray]:
+        self.flush()
+        desc = np.concatenate(self.rows) if self.rows else np.zeros((0, self.describer.dim), np.float32)
+        return self.frames, desc
+
+
+def make_map(
+    log: str | os.PathLike[str],
+    output: str | os.PathLike[str],
+    config: MapConfig | None = None,
+    *,
+    scores: str | os.PathLike[str] | Records | None = None,
+) -> MapResult:
+    """Build the memorable-map log of ``log`` (see module doc). ``scores``: an annotated MCAP of
+    ``memlog score`` (or its records) to reuse instead of scoring. Raises :class:`EmptyMapError`
+    when nothing would be kept."""
+    t0 = time.perf_counter()
+    cfg = config or MapConfig()
+    sel_cfg = cfg.select
+    dpath = cfg.descriptors_file(output)
+    inputs: list[Any] = [log] + ([scores] if isinstance(scores, (str, os.PathLike)) else [])
+    check_output(output, inputs)
+    if dpath is not None:
+        check_output(dpath, inputs + [output], flag="--descriptors")
+    describer = make_describer(cfg.descriptor) if cfg.descriptor is not None else None
+    with open_log(log) as reader:
+        cams = reader.check_camera_topics(cfg.topics)
+        missing_keep = set(cfg.keep_topics) - set(reader.topics())
+        if missing_keep:
+            raise ConfigError(f"--keep-topic: {reader.path} has no topic {', '.join(sorted(missing_keep))} "
+                              f"(topics: {', '.join(reader.topics())})")
+        track = read_track(reader, cfg.position_topic)  # None when the log has no position topic
+        thumbs: dict[str, dict[int, np.ndarray]] | None = {} if sel_cfg.needs_descriptors else None
+        if scores is None:
+            score_cfg = cfg.score.replace(all_scores=True) if sel_cfg.needs_all_scores else cfg.score
+            recs_by_topic = collect_scores(reader, score_cfg, FrameWindow(tuple(cams)), thumbnails=thumbs)
+        else:
+            recs_by_topic = _scores_from(scores, cfg)
+            if thumbs is not None:
+                for t in cams:
+                    thumbs[t] = _thumbnails(reader, t, {r["frame_index"] for r in recs_by_topic.get(t, [])})
+        cams = [t for t in cams if t in recs_by_topic] if cfg.topics is None else cams
+        selections: dict[str, Selection] = {}
+        for t in cams:
+            recs = recs_by_topic.get(t, [])
+            descs = None
+            if thumbs is not None and recs:
+                have = thumbs.get(t, {})
+                recs = [r for r in recs if r["frame_index"] in have]
+                descs = np.stack([have[r["frame_index"]] for r in recs]).astype(np.float32) if recs else None
+            table = score_table(recs, t, track, descs)
+            left_out = len(recs_by_topic.get(t, [])) - table.n
+            if left_out:
+                reader.warn(f"{reader.path}: topic {t}: {left_out} frame(s) left out of the selection "
+                            "(they did not decode; see the warnings above)")
+            selections[t] = sel_cfg.run(table)
+        kept = {t: {int(i) for i in s.index[s.keep]} for t, s in selections.items()}
+        n_in = sum(len(s.index) for s in selections.values())
+        n_kept = sum(len(k) for k in kept.values())
+        thresholds = next((s.thresholds for s in selections.values() if s.thresholds), {})
+        if n_kept == 0:
+            raise EmptyMapError(
+                f"{reader.path}: no frame passes the selection ({n_in} frames scored; thresholds "
+                f"{json.dumps(thresholds) if thresholds else 'n/a'}). Low-resolution or dark drives score low "
+                "entropy; lower --mt/--st/--et or let memlog pick thresholds with --keep-fraction 0.25"
+            )
+        score_recs = {t: {r["frame_index"]: r for r in recs_by_topic.get(t, [])} for t in cams}
+        describing = _Describing(describer, reader) if describer is not None else None
+        bytes_in = bytes_kept = 0
+        counts = reader.message_counts()
+        total = None
+        if counts is not None:
+            wanted = set(cams) | set(cfg.keep_topics)
+            total = sum(n for c in reader.channels() if c.topic in wanted for n in [counts.get(c.id, 0)])
+        with MapLogWriter(output, reader.profile, cams, image_format=cfg.image_format,
+                          jpeg_quality=cfg.jpeg_quality) as w:
+            stream = reader.stream(cams, passthrough=cfg.keep_topics)
+            for item in progress(stream, total=total, desc="map", unit="msg"):
+                if item.index is None:
+                    w.write_passthrough(item.raw)
+                    continue
+                bytes_in += len(item.raw.data)
+                frame = item.frame
+                if frame is None or item.index not in kept[item.raw.channel.topic]:
+                    continue
+                bytes_kept += len(item.raw.data)
+                w.write_frame(frame, item.raw, score_recs[frame.topic].get(frame.index))
+                if describing is not None:
+                    describing.add(frame)
+            result = MapResult(Path(output), None, selections, n_in, n_kept, bytes_in, 0, dict(thresholds),
+                               report=reader.report)
+            w.close({
+                "memlog_version": __version__, "input": str(reader.path), "config": cfg.score.to_json(),
+                "selection_config": json.dumps(sel_cfg.to_dict(), sort_keys=True),
+                "mode": sel_cfg.mode, "keep_fraction": json.dumps(sel_cfg.keep_fraction),
+                "thresholds": json.dumps(thresholds),
+                "frames_in": str(n_in), "frames_kept": str(n_kept), "camera_bytes_in": str(bytes_in),
+                "camera_bytes_kept_before_reencoding": str(bytes_kept),
+                "selection": json.dumps({t: s.to_dict() for t, s in selections.items()}),
+            })
+        result.bytes_out = os.path.getsize(output)
+        if describing is not None and describer is not None and dpath is not None:
+            frames, desc = describing.result()
+            extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
+                     "keep_fraction": sel_cfg.keep_fraction}
+            write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra))
+            result.descriptors = dpath
+    result.seconds = time.perf_counter() - t0
+    return result

@@ -1,0 +1,137 @@
+"""The layering of ARCHITECTURE.md, checked on the source: every import of a memlog module (at top
+level or inside a function, type-checking imports included) goes to the same layer or one below,
+and the file-level import graph has no cycle."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent / "memlog"
+
+#: Layers from the bottom; a module may import only from its own layer or lower ones.
+LAYERS: list[tuple[str, ...]] = [
+    ("memlog._version", "memlog.errors", "memlog.progress", "memlog.configfile"),
+    ("memlog.io",),
+    ("memlog.models",),
+    ("memlog.scoring",),
+    ("memlog.selection",),
+    ("memlog.descriptors",),
+    ("memlog.evaluation",),
+    ("memlog.outputs",),
+    ("memlog.steps",),
+    ("memlog.cli", "memlog.__main__", "memlog"),
+]
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for p in ROOT.rglob("*.py"):
+        parts = p.relative_to(ROOT.parent).with_suffix("").parts
+        name = ".".join(parts).removesuffix(".__init__")
+        out[name] = p
+    return out
+
+
+MODULES = _modules()
+
+
+def layer_of(module: str) -> int:
+    """Index of the most specific layer prefix that ``module`` falls under."""
+    best, best_len = None, -1
+    for i, prefixes in enumerate(LAYERS):
+        for pre in prefixes:
+            if (module == pre or module.startswith(pre + ".")) and len(pre) > best_len:
+                best, best_len = i, len(pre)
+    assert best is not None, f"{module} is in no layer of ARCHITECTURE.md"
+    return best
+
+
+def _resolve(name: str) -> str | None:
+    while name:
+        if name in MODULES:
+            return name
+        name = name.rpartition(".")[0]
+    return None
+
+
+def imports_of(module: str) -> set[str]:
+    """memlog modules that ``module`` imports anywhere in its file."""
+    path = MODULES[module]
+    is_pkg = path.name == "__init__.py"
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = module.split(".") if is_pkg else module.split(".")[:-1]
+                parts = parts[: len(parts) - (node.level - 1)]
+                base = ".".join(parts + ([base] if base else []))
+            names = [f"{base}.{a.name}" for a in node.names] + [base]
+        for n in names:
+            if n.split(".")[0] == "memlog":
+                t = _resolve(n)
+                if t is not None and t != module:
+                    found.add(t)
+    return found
+
+
+def test_every_module_has_a_layer() -> None:
+    for m in MODULES:
+        layer_of(m)
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_no_upward_import(module: str) -> None:
+    mine = layer_of(module)
+    up = sorted(t for t in imports_of(module) if layer_of(t) > mine)
+    assert not up, f"{module} (layer {mine}) imports higher layers: {up}"
+
+
+def test_no_import_cycles() -> None:
+    graph = {m: {t for t in imports_of(m) if not (t == m.rpartition('.')[0] or m == t.rpartition('.')[0])}
+             for m in MODULES}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    cycles: list[list[str]] = []
+    counter = [0]
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    assert not cycles, f"import cycles: {cycles}"
+
+
+def test_the_checks_can_fail() -> None:
+    """The layer rule catches an upward import (so the tests above are not vacuous)."""
+    assert layer_of("memlog.io.base") < layer_of("memlog.steps.score")
+    assert "memlog.io.base" in imports_of("memlog.io.frame") or "memlog.io.image" in imports_of("memlog.io.frame")
