@@ -98,8 +98,9 @@ def load_detector(device: str = "auto") -> Any:
     used, backend, target = detector_backend(device)
     try:
         net = cv2.dnn.readNetFromTensorflow(str(pb), str(pbtxt))
-        net.setPreferableBackend(backend)
-        net.setPreferableTarget(target)
+        if used == "cuda":  # the CPU default needs no call (OpenCV 5 warns about targets on its new engine)
+            net.setPreferableBackend(backend)
+            net.setPreferableTarget(target)
     except cv2.error as exc:
         raise ModelError(f"OpenCV could not load the detector from {pb} and {pbtxt}: {exc}") from exc
     return _DeviceNet(net, used)
