@@ -3,8 +3,14 @@
 :func:`score` streams the frames of a :class:`~memlog.io.base.FrameWindow`, scores them with
 the staged :class:`~memlog.scoring.scorer.Scorer` and writes the annotated MCAP
 (:class:`~memlog.outputs.annotated.AnnotatedLogWriter`): every input record untouched plus the
-scores, the Foxglove annotations and optionally the maps. :func:`iter_scores` is the same
-scoring without an output (the map step uses it).
+scores, the Foxglove annotations and optionally the maps.
+
+With ``workers > 1`` the frames are cut into chunks (:func:`plan_chunks`: contiguous runs of
+frames in log-time order) scored by worker processes (:func:`score_chunk`, one job per chunk,
+models loaded once per process) and merged back in log-time order by the one writer, so the
+output is byte-identical to a one-process run except the timing fields (``timing_ms`` of each
+record, ``seconds`` and ``mean_ms_per_frame`` of ``memlog_summary``). :func:`iter_scores` is the
+scoring without an output.
 
 Damage: a message that does not deserialize or an image that does not decode is reported and
 skipped (the run exits 3). Anything else that fails while scoring (a model error, memory) stops
@@ -13,11 +19,12 @@ the run: it is not damage of the input.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import platform
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Container, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,12 +37,15 @@ from memlog.io.frame import Frame
 from memlog.io.identity import log_identity
 from memlog.io.open import open_log
 from memlog.io.records import ReadReport
+from memlog.io.types import ImagePayload
 from memlog.outputs.annotated import AnnotatedLogWriter
 from memlog.progress import progress
 from memlog.scoring.config import ScoreConfig
 from memlog.scoring.scorer import STAGES, FrameScore, Scorer
+from memlog.steps.parallel import Executor, InProcess, cached, make_executor, threads_per_worker
 
-__all__ = ["score", "ScoreRun", "TopicSummary", "iter_scores"]
+__all__ = ["score", "ScoreRun", "TopicSummary", "iter_scores", "ScoredFrame", "ScoredChunk", "score_chunk",
+           "plan_chunks", "Chunk", "scored_frames"]
 
 
 @dataclass
@@ -96,13 +106,15 @@ def iter_scores(
     window: FrameWindow = FrameWindow(),
     *,
     errors: list[FrameError] | None = None,
+    indices: Mapping[str, Container[int]] | None = None,
 ) -> Iterator[tuple[Frame, FrameScore | None, str | None]]:
-    """Score the frames of ``window`` without writing anything: yields (frame, score or None, error).
+    """Score the frames of ``window`` (only ``indices`` when given) without writing anything:
+    yields (frame, score or None, error).
 
     A frame whose image does not decode is reported through ``reader`` (damage) and yielded
     with None; any other failure is raised.
     """
-    frames = reader.frames(window.topics, window.start_ns, window.end_ns, window.stride, errors)
+    frames = reader.frames(window.topics, window.start_ns, window.end_ns, window.stride, errors, indices=indices)
     for frame, res in scorer.score_stream(frames, lambda fr: fr.decode_bgr()):
         if isinstance(res, ImageDecodeError):
             err = reader.decode_error(frame, res)
@@ -115,9 +127,125 @@ def iter_scores(
             yield frame, res, None
 
 
-def _run_metadata(reader: LogReader, config: ScoreConfig, scorer: Scorer, window: FrameWindow,
+# -- chunks of frames, scored by workers ----------------------------------------------------------
+@dataclass(frozen=True)
+class Chunk:
+    """A contiguous run of frames in log-time order: their indices per topic and the log-time
+    range [``start_ns``, ``end_ns``) that holds them (so a worker's reader can seek)."""
+
+    indices: dict[str, frozenset[int]]
+    start_ns: int
+    end_ns: int
+    n: int
+
+
+@dataclass
+class ScoredFrame:
+    """One frame's result: the frame (pixels dropped), its score (None when it did not decode) and
+    the decode error."""
+
+    frame: Frame
+    score: FrameScore | None
+    error: str | None
+
+
+@dataclass
+class ScoredChunk:
+    """The results of one chunk, in log-time order, and what its reader found (frame-level damage)."""
+
+    frames: list[ScoredFrame]
+    report: ReadReport
+    errors: list[FrameError]
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+
+def _stripped(frame: Frame) -> Frame:
+    return dataclasses.replace(frame, payload=ImagePayload(frame.payload.kind, frame.payload.encoding, b""))
+
+
+def plan_chunks(reader: LogReader, window: FrameWindow, size: int) -> list[Chunk]:
+    """The frames of ``window`` cut into chunks of ``size`` frames, in log-time order (one pass
+    over the camera messages; nothing is deserialized)."""
+    topics = set(reader.check_camera_topics(window.topics))
+    chunks: list[Chunk] = []
+    cur: dict[str, set[int]] = {}
+    n = 0
+    t0 = t1 = 0
+    counters: dict[str, int] = {}
+    for m in reader.messages(topics, None, window.end_ns, True):
+        topic = m.channel.topic
+        idx = counters.get(topic, 0)
+        counters[topic] = idx + 1
+        if (window.start_ns is not None and m.log_time < window.start_ns) or idx % window.stride:
+            continue
+        if n == 0:
+            t0 = m.log_time
+        cur.setdefault(topic, set()).add(idx)
+        t1 = m.log_time
+        n += 1
+        if n == size:
+            chunks.append(Chunk({k: frozenset(v) for k, v in cur.items()}, t0, t1 + 1, n))
+            cur, n = {}, 0
+    if n:
+        chunks.append(Chunk({k: frozenset(v) for k, v in cur.items()}, t0, t1 + 1, n))
+    return chunks
+
+
+def _scorer_for(config: ScoreConfig) -> Scorer:
+    return cached(("scorer", config), lambda: Scorer(config).load())
+
+
+def score_chunk(log: str, config: ScoreConfig, window: FrameWindow, chunk: Chunk | None) -> ScoredChunk:
+    """Score one chunk of ``log`` (a worker's job; the whole window when ``chunk`` is None). The
+    scorer is loaded once per process. Warnings are collected in the report, not printed."""
+    scorer = _scorer_for(config)
+    with open_log(log) as reader:
+        reader.on_warning = lambda text: None
+        errors: list[FrameError] = []
+        w = window if chunk is None else FrameWindow(window.topics, chunk.start_ns, chunk.end_ns, window.stride)
+        out = [ScoredFrame(_stripped(f), s, e) for f, s, e in
+               iter_scores(reader, scorer, w, errors=errors, indices=None if chunk is None else chunk.indices)]
+        return ScoredChunk(out, reader.report, errors, scorer.provenance())
+
+
+def scored_frames(
+    log: str | os.PathLike[str],
+    reader: LogReader,
+    config: ScoreConfig,
+    window: FrameWindow,
+    *,
+    executor: Executor | None = None,
+    scorer: Scorer | None = None,
+    errors: list[FrameError] | None = None,
+    provenance: dict[str, Any] | None = None,
+    chunk_frames: int = 16,
+) -> Iterator[ScoredFrame]:
+    """Every frame of ``window`` scored, in log-time order: here through ``reader`` (one process),
+    or in chunks on ``executor``'s workers. Frame-level damage found by the workers is added to
+    ``reader.report`` (and reported) as if ``reader`` had found it; ``provenance`` (when given)
+    receives the workers' model hashes and devices."""
+    if executor is None or isinstance(executor, InProcess):
+        sc = scorer or Scorer(config).load()
+        for f, s, e in iter_scores(reader, sc, window, errors=errors):
+            yield ScoredFrame(_stripped(f), s, e)
+        return
+    wcfg = config.replace(threads=threads_per_worker(executor.workers, config.threads))
+    chunks = plan_chunks(reader, window, chunk_frames)
+    for res in executor.map_ordered(score_chunk, ((str(log), wcfg, window, c) for c in chunks)):
+        rep = reader.report
+        rep.bad_messages += res.report.bad_messages
+        rep.undecodable_frames += res.report.undecodable_frames
+        for ferr in res.errors:
+            reader.warn(str(ferr))
+        if errors is not None:
+            errors.extend(res.errors)
+        if provenance is not None and not provenance:
+            provenance.update(res.provenance)
+        yield from res.frames
+
+
+def _run_metadata(reader: LogReader, config: ScoreConfig, prov: dict[str, Any], window: FrameWindow,
                   copied: int) -> dict[str, str]:
-    prov = scorer.provenance()
     return {
         "memlog_version": __version__, "config": config.to_json(), "input": str(reader.path),
         "input_identity": json.dumps(log_identity(reader.path), sort_keys=True),
@@ -134,41 +262,53 @@ def score(
     window: FrameWindow | None = None,
     *,
     scorer: Scorer | None = None,
-    on_frame: Callable[[Frame, FrameScore | None], None] | None = None,
+    workers: int = 1,
+    executor: Executor | None = None,
+    chunk_frames: int = 16,
 ) -> ScoreRun:
     """Score ``log`` and write the annotated MCAP to ``output`` (atomically).
 
     Every input record is copied first; score messages carry their frame's log time, so players
-    show them with their frame.
+    show them with their frame. ``workers`` > 1 scores chunks of frames on that many processes
+    (or on ``executor``); the output is the same as with one.
     """
     config = config or ScoreConfig()
     window = window or FrameWindow()
-    scorer = scorer or Scorer(config)
     t_start = time.perf_counter()
     check_output(output, [log])
-    with open_log(log) as reader:
-        topics = reader.check_camera_topics(window.topics)
-        scorer.load()
-        errors: list[FrameError] = []
-        summaries = {t: TopicSummary() for t in topics}
-        total = reader.count_frames(window)
-        counts = reader.message_counts()
-        with AnnotatedLogWriter(output, reader, topics, config) as w:
-            # Pass 1 copies every record; pass 2 streams the camera frames again and scores them:
-            # two sequential reads keep memory flat whatever the log size.
-            n_msgs = sum(counts.values()) if counts else None
-            copied = w.copy_input(wrap=lambda it: progress(it, total=n_msgs, desc="copy", unit="msg")).messages
-            scored = iter_scores(reader, scorer, window, errors=errors)
-            for frame, s, err in progress(scored, total=total, desc="score", unit="frame"):
-                summaries[frame.topic].add(s)
-                w.write(frame, s, err)
-                if on_frame is not None:
-                    on_frame(frame, s)
-            for e in errors:  # frames that did not even deserialize
-                if e.topic in summaries and "does not deserialize" in e.reason:
-                    summaries[e.topic].frames_seen += 1
-                    summaries[e.topic].undecodable += 1
-            run = ScoreRun(Path(output), summaries, time.perf_counter() - t_start, reader.report, errors)
-            w.close(_run_metadata(reader, config, scorer, window, copied),
-                    {k: json.dumps(v) for k, v in run.to_dict().items()})
+    own = executor is None
+    ex = executor or make_executor(workers)
+    try:
+        with open_log(log) as reader:
+            topics = reader.check_camera_topics(window.topics)
+            sc = None
+            if ex.workers == 1:  # with workers, the models load in the worker processes
+                sc = (scorer or Scorer(config)).load()
+            prov: dict[str, Any] = {}
+            errors: list[FrameError] = []
+            summaries = {t: TopicSummary() for t in topics}
+            total = reader.count_frames(window)
+            counts = reader.message_counts()
+            with AnnotatedLogWriter(output, reader, topics, config) as w:
+                # Pass 1 copies every record; pass 2 streams the camera frames again and scores them:
+                # two sequential reads keep memory flat whatever the log size.
+                n_msgs = sum(counts.values()) if counts else None
+                copied = w.copy_input(wrap=lambda it: progress(it, total=n_msgs, desc="copy", unit="msg")).messages
+                frames = scored_frames(log, reader, config, window, executor=ex, scorer=sc, errors=errors,
+                                       provenance=prov, chunk_frames=chunk_frames)
+                for item in progress(frames, total=total, desc="score", unit="frame"):
+                    summaries[item.frame.topic].add(item.score)
+                    w.write(item.frame, item.score, item.error)
+                for e in errors:  # frames that did not even deserialize
+                    if e.topic in summaries and "does not deserialize" in e.reason:
+                        summaries[e.topic].frames_seen += 1
+                        summaries[e.topic].undecodable += 1
+                run = ScoreRun(Path(output), summaries, time.perf_counter() - t_start, reader.report, errors)
+                if not prov:
+                    prov = (sc or Scorer(config)).provenance()
+                w.close(_run_metadata(reader, config, prov, window, copied),
+                        {k: json.dumps(v) for k, v in run.to_dict().items()})
+    finally:
+        if own:
+            ex.close()
     return run
