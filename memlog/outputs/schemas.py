@@ -47,7 +47,10 @@ FRAME_SCORES: dict[str, Any] = {
         "crops_surrogate": {"type": "integer", "minimum": 0,
                             "description": "crops run through the fast-mode int8 surrogate (0 outside fast mode)"},
         "selected": {"type": "boolean"},
-        "rejected_by": {"enum": [None, "staticity", "entropy", "memorability", "undecodable"]},
+        "rejected_by": {"enum": [None, "staticity", "entropy", "memorability", "undecodable", "unscored"],
+                        "description": "first criterion of the paper rule (MT/ST/ET) the frame fails; 'unscored': "
+                                       "the staged selection of `memlog map` did not need MS and its bounds do not "
+                                       "decide MT"},
         "thresholds": {
             "type": "object",
             "properties": {"mt": {"type": "number"}, "st": {"type": "number"}, "et": {"type": "number"}},

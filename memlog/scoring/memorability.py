@@ -154,13 +154,16 @@ class Memorability:
         *,
         prior: tuple[npt.NDArray[Any], npt.NDArray[Any]] | None = None,
         crops: F32 | None = None,
+        known: npt.NDArray[Any] | None = None,
     ) -> MemorabilityResult:
         """Score a frame; with ``threshold`` stop as soon as MS >= threshold is decided.
 
         ``prior``: per-crop bounds (lo, hi), 25 values each, known to contain the crop scores
         (default 0 and 1, the range of ResMem's sigmoid). Crops are scored in order of
         decreasing weight x (hi - lo), so the bound on MS shrinks fastest. ``crops``: the
-        frame's :func:`crops_from_frame`, when the caller already has them.
+        frame's :func:`crops_from_frame`, when the caller already has them. ``known``: crop
+        scores from an earlier call (5 x 5, NaN where not scored), which are not run again, so a
+        frame stopped early can be finished. ``n_scored`` of the result counts known crops too.
         """
         bs = self.batch if batch is None else batch
         if bs < 1:
@@ -173,19 +176,26 @@ class Memorability:
             check_crops(crops)
         w = crop_weights(static_map).reshape(-1)
         lo, hi = _check_prior(prior)
-        order = [int(k) for k in np.argsort(-(w * (hi - lo)), kind="stable") if w[k] > 0]
         m = np.full(GRID * GRID, np.nan, dtype=np.float32)
-        done = 0.0  # sum of w_k M_k over scored crops
+        if known is not None:
+            kn = np.asarray(known, dtype=np.float32).reshape(-1)
+            if kn.shape != (GRID * GRID,):
+                raise ScoringError(f"known crop scores must hold {GRID * GRID} values, got {kn.shape}")
+            m[:] = kn
+        have = ~np.isnan(m)
+        order = [int(k) for k in np.argsort(-(w * (hi - lo)), kind="stable") if w[k] > 0 and not have[k]]
+        done = float(np.dot(w[have], m[have].astype(np.float64)))  # sum of w_k M_k over scored crops
         left_lo = float(np.dot(w[order], lo[order]))  # bounds on the unscored crops' share
         left_hi = float(np.dot(w[order], hi[order]))
-        n = 0
-        while n < len(order):
+        n = int(have.sum())
+        start = n
+        while n - start < len(order):
             if threshold is not None:
                 if done + left_lo >= threshold + DECISION_MARGIN:
                     return self._result(m, done + left_lo, done + left_hi, n, True)
                 if done + left_hi < threshold - DECISION_MARGIN:
                     return self._result(m, done + left_lo, done + left_hi, n, False)
-            idx = order[n:n + bs]
+            idx = order[n - start:n - start + bs]
             m[idx] = run_crops(self.session, crops[idx])
             done += float(np.dot(w[idx], m[idx].astype(np.float64)))
             left_lo -= float(np.dot(w[idx], lo[idx]))

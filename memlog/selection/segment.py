@@ -43,14 +43,14 @@ from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from memlog.errors import ConfigError
 from memlog.selection._checks import finite_number, fraction, positive_int, positive_number
 from memlog.selection.paper import codes_to_reasons, first_failing
 from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
 
-__all__ = ["SegmentConfig", "select_segments", "segment_ids", "combined_score", "percentile_ranks"]
+__all__ = ["SegmentConfig", "select_segments", "segment_ids", "combined_score", "geometric_score", "percentile_ranks"]
 
 SegmentBy = Literal["auto", "distance", "time", "count", "view"]
 Combine = Literal["rank", "geometric"]
@@ -148,18 +148,28 @@ def combined_score(
 ) -> NDArray[np.float64]:
     """Per-frame combined score of (MS, SS, ES) with weights (ms, ss, es); NaN if any used
     score is NaN. See the module docstring for the choice."""
+    if combine == "geometric":
+        return geometric_score(table.ms, table.ss, table.es, weights)
+    if combine == "rank":
+        w = np.asarray(weights, dtype=np.float64)
+        used = [i for i in range(3) if w[i] > 0]
+        wu = w[used][:, None] / w[used].sum()
+        ranks = np.stack([percentile_ranks((table.ms, table.ss, table.es)[i]) for i in used])
+        return np.asarray((wu * ranks).sum(axis=0), dtype=np.float64)
+    raise ConfigError(f"combine must be one of {_COMBINE}, got {combine!r}")
+
+
+def geometric_score(ms: ArrayLike, ss: ArrayLike, es: ArrayLike,
+                    weights: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> NDArray[np.float64]:
+    """The weighted geometric mean (MS^a SS^b ES^c)^(1/(a+b+c)), element-wise; increasing in
+    each score, so bounds on MS give bounds on it (the staged selection relies on this)."""
     w = np.asarray(weights, dtype=np.float64)
     used = [i for i in range(3) if w[i] > 0]
     wu = w[used][:, None] / w[used].sum()
-    cols = np.stack([(table.ms, table.ss, table.es)[i] for i in used])
-    if combine == "rank":
-        ranks = np.stack([percentile_ranks(c) for c in cols])
-        return np.asarray((wu * ranks).sum(axis=0), dtype=np.float64)
-    if combine == "geometric":
-        with np.errstate(divide="ignore", invalid="ignore"):
-            logs = np.log(np.clip(cols, 0.0, None))
-            return np.asarray(np.exp((wu * logs).sum(axis=0)), dtype=np.float64)
-    raise ConfigError(f"combine must be one of {_COMBINE}, got {combine!r}")
+    cols = np.stack([np.atleast_1d(np.asarray((ms, ss, es)[i], dtype=np.float64)) for i in used])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        logs = np.log(np.clip(cols, 0.0, None))
+        return np.asarray(np.exp((wu * logs).sum(axis=0)), dtype=np.float64)
 
 
 def _path_length(table: ScoreTable) -> NDArray[np.float64]:

@@ -33,19 +33,23 @@ from memlog.errors import ConfigError, ImageDecodeError, SelectionError
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow, LogReader
 from memlog.io.frame import Frame
+from memlog.io.identity import same_identity
 from memlog.io.open import open_log
 from memlog.io.positions import PositionTrack, read_track
 from memlog.io.records import ReadReport
 from memlog.io.types import ImagePayload
-from memlog.outputs.annotated import read_scores, run_config, scores_message
+from memlog.outputs.annotated import read_scores, run_config, run_input_identity, scores_message
 from memlog.outputs.descriptor_table import write_descriptors
 from memlog.outputs.maplog import MapLogWriter
 from memlog.progress import progress
 from memlog.scoring.config import ScoreConfig
-from memlog.scoring.scorer import Scorer
 from memlog.selection import ScoreTable, Selection
 from memlog.selection.config import SelectionConfig
-from memlog.steps.score import iter_scores
+from memlog.selection.segment import SegmentConfig, segment_ids
+from memlog.selection.staged import MSState
+from memlog.steps.map_scoring import CheapFrame, SegmentJob, cheap_frames, choose_chunk, staged_record
+from memlog.steps.parallel import Executor, make_executor, threads_per_worker
+from memlog.steps.score import scored_frames
 
 __all__ = ["make_map", "MapConfig", "MapResult", "score_table", "EmptyMapError", "collect_scores"]
 
@@ -64,7 +68,11 @@ class MapConfig:
     copied whole (GPS, odometry); ``position_topic``: NavSatFix/pose/odometry topic for
     positions (default: the first found); ``image_format``/``jpeg_quality``: how raw frames
     are encoded; ``descriptor``: reference descriptor kind (None: no descriptors);
-    ``descriptors_path``: the Parquet file (default: the map path with ``.parquet``).
+    ``descriptors_path``: the Parquet file (default: the map path with ``.parquet``);
+    ``workers``: processes scoring frames; ``candidates``: with segment selection, score at most
+    this many frames per segment with ResMem (the best by their cheap scores, spread over the
+    segment; approximate) instead of exactly the frames that can still win (default); ``stride``:
+    consider every n-th frame of each topic only (frame indices stay positions on the topic).
     """
 
     score: ScoreConfig = field(default_factory=ScoreConfig)
@@ -76,8 +84,15 @@ class MapConfig:
     jpeg_quality: int = 90
     descriptor: str | None = "thumbnail"
     descriptors_path: str | None = None
+    workers: int = 1
+    candidates: int | None = None
+    stride: int = 1
 
     def __post_init__(self) -> None:
+        for name, low in (("workers", 1), ("candidates", 1), ("stride", 1)):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < low):
+                raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
         if self.image_format not in ("jpeg", "png"):
             raise ConfigError(f"image_format must be jpeg or png, got {self.image_format!r}")
         q = self.jpeg_quality
@@ -108,6 +123,8 @@ class MapResult:
     thresholds: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
     report: ReadReport | None = None
+    crops_run: int | None = None
+    crops_full: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -116,7 +133,8 @@ class MapResult:
             "frame_fraction": self.frames_kept / max(self.frames_in, 1),
             "bytes_in": self.bytes_in, "bytes_out": self.bytes_out,
             "byte_fraction": self.bytes_out / max(self.bytes_in, 1), "thresholds": self.thresholds,
-            "seconds": round(self.seconds, 3),
+            "seconds": round(self.seconds, 3), "resmem_crops_run": self.crops_run,
+            "resmem_crops_full_scoring": self.crops_full,
             "topics": {t: s.to_dict() for t, s in self.selections.items()},
         }
 
@@ -128,7 +146,8 @@ def _val(v: Any) -> float:
 def score_table(records: list[dict[str, Any]], topic: str, track: PositionTrack | None = None,
                 descriptors: np.ndarray | None = None) -> ScoreTable:
     """A ScoreTable from score records (``T/memlog/scores`` messages) of one topic; records of
-    frames that did not decode are left out."""
+    frames that did not decode are left out. Where MS was only bounded (staged selection), its
+    lower bound stands in: such a frame provably did not win its segment."""
     recs = [r for r in records if r.get("rejected_by") != "undecodable"]
     t = np.array([r["log_time"] for r in recs], dtype=np.int64)
     pos = track.at(t.tolist()) if track is not None and len(recs) else None
@@ -136,27 +155,29 @@ def score_table(records: list[dict[str, Any]], topic: str, track: PositionTrack 
         pos = None
     return ScoreTable(
         index=np.array([r["frame_index"] for r in recs], dtype=np.int64), t_ns=t,
-        ms=np.array([_val(r["ms"]) for r in recs]), ss=np.array([_val(r["ss"]) for r in recs]),
+        ms=np.array([_val(r["ms"] if r["ms"] is not None else r.get("ms_low")) for r in recs]),
+        ss=np.array([_val(r["ss"]) for r in recs]),
         es=np.array([_val(r["es"]) for r in recs]), positions=pos, descriptors=descriptors, topic=topic,
     )
 
 
 def collect_scores(
-    reader: LogReader, config: ScoreConfig, window: FrameWindow, *, thumbnails: dict[str, dict[int, np.ndarray]] | None = None
+    log: str, reader: LogReader, config: ScoreConfig, window: FrameWindow, executor: Executor | None = None, *,
+    thumbnails: dict[str, dict[int, np.ndarray]] | None = None
 ) -> Records:
     """Score the frames of ``window`` without writing them: score records per camera topic (as in
-    ``T/memlog/scores``). ``thumbnails`` (when given) receives each decoded frame's thumbnail
-    descriptor, for near-duplicate removal and view segments, from the same pass."""
-    scorer = Scorer(config).load()
-    thumb = make_describer("thumbnail") if thumbnails is not None else None
+    ``T/memlog/scores``). ``thumbnails`` (when given) receives each frame's thumbnail descriptor,
+    for near-duplicate removal and view segments (decoded again from the record's frame)."""
     out: Records = {}
     total = reader.count_frames(window)
-    for frame, s, err in progress(iter_scores(reader, scorer, window), total=total, desc="score", unit="frame"):
-        rec = scores_message(frame, s, config, err)
+    frames = scored_frames(log, reader, config, window, executor=executor)
+    for item in progress(frames, total=total, desc="score", unit="frame"):
+        rec = scores_message(item.frame, item.score, config, item.error)
         rec.pop("memorability", None)
-        out.setdefault(frame.topic, []).append(rec)
-        if thumb is not None and thumbnails is not None and s is not None:
-            thumbnails.setdefault(frame.topic, {})[frame.index] = thumb.describe([frame.decode_bgr()])[0]
+        out.setdefault(item.frame.topic, []).append(rec)
+    if thumbnails is not None:
+        for t, recs in out.items():
+            thumbnails[t] = _thumbnails(reader, t, {r["frame_index"] for r in recs if r["rejected_by"] != "undecodable"})
     return out
 
 
@@ -172,16 +193,29 @@ def _thumbnails(reader: LogReader, topic: str, indices: set[int]) -> dict[int, n
     return out
 
 
-def _scores_from(scores: str | os.PathLike[str] | Records, cfg: MapConfig) -> Records:
+def _scores_from(scores: str | os.PathLike[str] | Records, cfg: MapConfig, log: str) -> Records:
+    """Score records of a scoring run to reuse: refused when made from another log (or with early
+    exit when selection needs every score), or when a camera topic to map has none."""
     if isinstance(scores, dict):
         return scores
+    ident = run_input_identity(scores)
+    if ident is not None and not same_identity(ident, log):
+        raise ConfigError(f"--scores {scores}: it was scored from {ident.get('path')}, not from {log} "
+                          "(or that log changed since); score this log first")
     used = run_config(scores)
     if cfg.select.needs_all_scores and used is not None and not (used.all_scores or used.mode == "paper"):
         raise ConfigError(
             f"--scores {scores}: scored with early exit, so skipped scores are missing; --keep-fraction and "
             "--select segment need every score: run `memlog score --all-scores` first"
         )
-    return read_scores(scores)
+    recs = read_scores(scores)
+    missing = [t for t in (cfg.topics or ()) if t not in recs]
+    if missing:
+        raise ConfigError(f"--scores {scores}: no scores for topic {', '.join(missing)} "
+                          f"(it has scores for: {', '.join(sorted(recs)) or 'none'})")
+    if not recs:
+        raise ConfigError(f"--scores {scores}: holds no score records (is it an output of `memlog score`?)")
+    return recs
 
 
 def _stripped(frame: Frame) -> Frame:
@@ -220,6 +254,126 @@ class _Describing:
         return self.frames, desc
 
 
+def _stageable(cfg: MapConfig) -> bool:
+    """Whether the staged selection applies: segments chosen by the geometric score, and the
+    user did not ask for every score (``--all-scores``) or the literal pipeline."""
+    sel = cfg.select
+    return sel.mode == "segment" and sel.combine == "geometric" and not cfg.score.all_scores \
+        and cfg.score.mode != "paper"
+
+
+def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topic: Records,
+                track: PositionTrack | None, thumbs: dict[str, dict[int, np.ndarray]] | None) -> dict[str, Selection]:
+    """Select once per topic from the score records (and thumbnails when selection needs them)."""
+    selections: dict[str, Selection] = {}
+    for t in cams:
+        recs = recs_by_topic.get(t, [])
+        descs = None
+        if thumbs is not None and recs:
+            have = thumbs.get(t, {})
+            recs = [r for r in recs if r["frame_index"] in have]
+            descs = np.stack([have[r["frame_index"]] for r in recs]).astype(np.float32) if recs else None
+        table = score_table(recs, t, track, descs)
+        left_out = len(recs_by_topic.get(t, [])) - table.n
+        if left_out:
+            reader.warn(f"{reader.path}: topic {t}: {left_out} frame(s) left out of the selection "
+                        "(they did not decode; see the warnings above)")
+        selections[t] = cfg.select.run(table)
+    return selections
+
+
+Crops = tuple[int | None, int | None]
+
+
+def _full(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: PositionTrack | None,
+          ex: Executor, scores: str | os.PathLike[str] | Records | None) -> tuple[Records, dict[str, Selection], Crops]:
+    """Every score of every frame (or a reused scoring run), then selection."""
+    sel_cfg = cfg.select
+    thumbs: dict[str, dict[int, np.ndarray]] | None = {} if sel_cfg.needs_descriptors else None
+    crops: Crops = (None, None)
+    if scores is None:
+        score_cfg = cfg.score.replace(all_scores=True) if sel_cfg.needs_all_scores else cfg.score
+        recs_by_topic = collect_scores(log, reader, score_cfg, FrameWindow(tuple(cams), stride=cfg.stride), ex, thumbnails=thumbs)
+        n = sum(int(r.get("crops_scored") or 0) for recs in recs_by_topic.values() for r in recs)
+        crops = (n, n if score_cfg.all_scores else None)
+    else:
+        recs_by_topic = _scores_from(scores, cfg, log)
+        if thumbs is not None:
+            for t in cams:
+                thumbs[t] = _thumbnails(reader, t, {r["frame_index"] for r in recs_by_topic.get(t, [])})
+    return recs_by_topic, _selections(reader, cfg, cams, recs_by_topic, track, thumbs), crops
+
+
+def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: PositionTrack | None,
+            ex: Executor) -> tuple[Records, dict[str, Selection], Crops]:
+    """Staged segment selection (:mod:`memlog.steps.map_scoring`): the cheap criteria of every
+    frame, segments, then ResMem only where it can change which frame a segment keeps."""
+    sel_cfg = cfg.select
+    score_cfg = cfg.score.replace(all_scores=True)  # the cheap pass computes SS and ES of every frame
+    window = FrameWindow(tuple(cams), stride=cfg.stride)
+    cheap: dict[str, list[CheapFrame]] = {t: [] for t in cams}
+    total = reader.count_frames(window)
+    for cf in progress(cheap_frames(log, reader, score_cfg, window, ex, thumbs=sel_cfg.needs_descriptors),
+                       total=total, desc="cheap scores", unit="frame"):
+        cheap[cf.frame.topic].append(cf)
+    seg_cfg = SegmentConfig(**sel_cfg.segment_settings())
+    jobs: list[tuple[str, list[int], SegmentJob]] = []
+    for t in cams:
+        good = [cf for cf in cheap[t] if cf.error is None]
+        if not good:
+            continue
+        table = ScoreTable(
+            index=np.array([cf.frame.index for cf in good], dtype=np.int64),
+            t_ns=np.array([cf.frame.log_time_ns for cf in good], dtype=np.int64),
+            ms=np.zeros(len(good)), ss=np.array([round(float(cf.ss or 0.0), 6) for cf in good]),
+            es=np.array([round(float(cf.es or 0.0), 6) for cf in good]),
+            positions=_positions(track, good),
+            descriptors=np.stack([np.asarray(cf.thumb) for cf in good]) if sel_cfg.needs_descriptors else None,
+            topic=t)
+        seg, _ = segment_ids(table, seg_cfg)
+        passing = (table.ss >= sel_cfg.min_ss) & (table.es >= sel_cfg.min_es)
+        for sid in np.unique(seg):
+            rows = [int(r) for r in np.flatnonzero((seg == sid) & passing)]
+            if not rows:
+                continue
+            jobs.append((t, rows, SegmentJob(
+                t, [int(table.index[r]) for r in rows], [float(table.ss[r]) for r in rows],
+                [float(table.es[r]) for r in rows], [good[r].detections for r in rows],
+                int(table.t_ns[rows[0]]), int(table.t_ns[rows[-1]]) + 1)))
+    states: dict[tuple[str, int], MSState] = {}
+    group = max(1, min(32, len(jobs) // max(1, 4 * ex.workers)))
+    batches = [jobs[i:i + group] for i in range(0, len(jobs), group)]
+    wcfg = score_cfg.replace(threads=threads_per_worker(ex.workers, score_cfg.threads))
+    args = ((log, wcfg if ex.workers > 1 else score_cfg, window, [j for _, _, j in b], sel_cfg.weights,
+             sel_cfg.min_ms, cfg.candidates) for b in batches)
+    results = progress(ex.map_ordered(choose_chunk, args), total=len(batches), desc="memorability", unit="job")
+    for b, res in zip(batches, results):
+        for (t, _rows, job), r in zip(b, res):
+            for idx, st in zip(job.indices, r.states):
+                states[(t, idx)] = st
+    recs_by_topic: Records = {}
+    run = full = 0
+    for t in cams:
+        recs = []
+        for cf in cheap[t]:
+            state = states.get((t, cf.frame.index))
+            recs.append(staged_record(cf, state, cfg.score))
+            run += state.crops_run if state is not None else 0
+            full += cf.crops_needed
+        recs_by_topic[t] = recs
+    thumbs = {t: {cf.frame.index: cf.thumb for cf in cheap[t] if cf.thumb is not None} for t in cams} \
+        if sel_cfg.needs_descriptors else None
+    selections = _selections(reader, cfg, cams, recs_by_topic, track, thumbs)
+    return recs_by_topic, selections, (run, full)
+
+
+def _positions(track: PositionTrack | None, frames: list[CheapFrame]) -> np.ndarray | None:
+    if track is None or not frames:
+        return None
+    pos = track.at([cf.frame.log_time_ns for cf in frames])
+    return None if np.isnan(pos).all() else pos
+
+
 def make_map(
     log: str | os.PathLike[str],
     output: str | os.PathLike[str],
@@ -246,30 +400,15 @@ def make_map(
             raise ConfigError(f"--keep-topic: {reader.path} has no topic {', '.join(sorted(missing_keep))} "
                               f"(topics: {', '.join(reader.topics())})")
         track = read_track(reader, cfg.position_topic)  # None when the log has no position topic
-        thumbs: dict[str, dict[int, np.ndarray]] | None = {} if sel_cfg.needs_descriptors else None
-        if scores is None:
-            score_cfg = cfg.score.replace(all_scores=True) if sel_cfg.needs_all_scores else cfg.score
-            recs_by_topic = collect_scores(reader, score_cfg, FrameWindow(tuple(cams)), thumbnails=thumbs)
-        else:
-            recs_by_topic = _scores_from(scores, cfg)
-            if thumbs is not None:
-                for t in cams:
-                    thumbs[t] = _thumbnails(reader, t, {r["frame_index"] for r in recs_by_topic.get(t, [])})
+        ex = make_executor(cfg.workers)
+        try:
+            if scores is None and _stageable(cfg):
+                recs_by_topic, selections, crops = _staged(str(log), reader, cfg, cams, track, ex)
+            else:
+                recs_by_topic, selections, crops = _full(str(log), reader, cfg, cams, track, ex, scores)
+        finally:
+            ex.close()
         cams = [t for t in cams if t in recs_by_topic] if cfg.topics is None else cams
-        selections: dict[str, Selection] = {}
-        for t in cams:
-            recs = recs_by_topic.get(t, [])
-            descs = None
-            if thumbs is not None and recs:
-                have = thumbs.get(t, {})
-                recs = [r for r in recs if r["frame_index"] in have]
-                descs = np.stack([have[r["frame_index"]] for r in recs]).astype(np.float32) if recs else None
-            table = score_table(recs, t, track, descs)
-            left_out = len(recs_by_topic.get(t, [])) - table.n
-            if left_out:
-                reader.warn(f"{reader.path}: topic {t}: {left_out} frame(s) left out of the selection "
-                            "(they did not decode; see the warnings above)")
-            selections[t] = sel_cfg.run(table)
         kept = {t: {int(i) for i in s.index[s.keep]} for t, s in selections.items()}
         n_in = sum(len(s.index) for s in selections.values())
         n_kept = sum(len(k) for k in kept.values())
@@ -304,7 +443,7 @@ def make_map(
                 if describing is not None:
                     describing.add(frame)
             result = MapResult(Path(output), None, selections, n_in, n_kept, bytes_in, 0, dict(thresholds),
-                               report=reader.report)
+                               report=reader.report, crops_run=crops[0], crops_full=crops[1])
             w.close({
                 "memlog_version": __version__, "input": str(reader.path), "config": cfg.score.to_json(),
                 "selection_config": json.dumps(sel_cfg.to_dict(), sort_keys=True),
@@ -313,6 +452,7 @@ def make_map(
                 "frames_in": str(n_in), "frames_kept": str(n_kept), "camera_bytes_in": str(bytes_in),
                 "camera_bytes_kept_before_reencoding": str(bytes_kept),
                 "selection": json.dumps({t: s.to_dict() for t, s in selections.items()}),
+                "resmem_crops_run": json.dumps(crops[0]), "resmem_crops_full_scoring": json.dumps(crops[1]),
             })
         result.bytes_out = os.path.getsize(output)
         if describing is not None and describer is not None and dpath is not None:

@@ -225,7 +225,7 @@ def scored_frames(
     ``reader.report`` (and reported) as if ``reader`` had found it; ``provenance`` (when given)
     receives the workers' model hashes and devices."""
     if executor is None or isinstance(executor, InProcess):
-        sc = scorer or Scorer(config).load()
+        sc = scorer or _scorer_for(config)
         for f, s, e in iter_scores(reader, sc, window, errors=errors):
             yield ScoredFrame(_stripped(f), s, e)
         return

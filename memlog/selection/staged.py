@@ -1,0 +1,186 @@
+"""Staged segment selection: the memorability CNN only for frames that can still win their segment.
+
+Segment selection keeps, per place segment, the frame with the best geometric score
+(MS^a SS^b ES^c)^(1/(a+b+c)) among the frames passing the minimum scores. SS and ES are cheap;
+MS needs ResMem. The score is increasing in MS, and MS is bounded before any crop is scored:
+MS = sum_k w_k M_k with crop weights summing to SS and ResMem outputs in 0..1, so MS lies in
+[0, SS] (in [0, 1] with ``normalize="static"``). :func:`choose_in_segment` therefore scores the
+candidates in order of their upper bound; each one only until it is known not to beat the
+current leader (the crop loop stops as soon as MS is below the MS that would be needed), a new
+leader to its exact MS; and it stops when the leader's score is above every remaining
+candidate's upper bound. The frame it returns is the frame full scoring would keep (ties go to
+the earlier frame, as in :func:`~memlog.selection.segment.select_segments`): the tests compare
+both on real logs.
+
+``shortlist=K`` (approximate, ``--candidates K``): only K candidates per segment are scored,
+the best by their upper bound, spread over the segment (the best of each of K equal parts).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from memlog.selection.segment import geometric_score
+
+__all__ = ["MSResult", "MSState", "choose_in_segment", "shortlist_rows", "ms_to_beat"]
+
+#: Slack on the MS a candidate needs: decisions are verified on the score itself anyway.
+_SLACK = 1e-9
+
+
+@dataclass
+class MSResult:
+    """What scoring one frame's memorability produced: exact MS, or bounds [low, high]; the crop
+    scores so far (5 x 5, NaN = not scored) and the number of crops run by this call."""
+
+    low: float
+    high: float
+    exact: bool
+    m: NDArray[Any] | None = None
+    crops_run: int = 0
+
+    @property
+    def ms(self) -> float | None:
+        return self.low if self.exact else None
+
+
+@dataclass
+class MSState:
+    """The MS bounds of one row as the staged selection leaves them."""
+
+    low: float
+    high: float
+    exact: bool = False
+    m: NDArray[Any] | None = None
+    crops_run: int = 0
+    scored: bool = False  # the CNN looked at this frame at all
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+#: ``score(row, threshold, known)``: score row's MS, stopping once MS >= threshold is decided
+#: (threshold None: exact), continuing from the crop scores ``known`` when given.
+ScoreFn = Callable[[int, float | None, NDArray[Any] | None], MSResult]
+
+
+def _value(ms: float, ss: float, es: float, weights: tuple[float, float, float]) -> float:
+    return float(geometric_score(ms, ss, es, weights)[0])
+
+
+def ms_to_beat(value: float, ss: float, es: float, weights: tuple[float, float, float]) -> float:
+    """The MS at which a frame with these SS and ES reaches the score ``value`` (a hint for the
+    crop loop; decisions are checked on the score itself)."""
+    w = np.asarray(weights, dtype=np.float64)
+    used = [i for i in range(3) if w[i] > 0]
+    tot = float(w[used].sum())
+    if w[0] <= 0:
+        return 0.0
+    if value <= 0:
+        return 0.0
+    rest = 0.0
+    for i, v in ((1, ss), (2, es)):
+        if w[i] > 0:
+            if v <= 0:
+                return math.inf
+            rest += w[i] / tot * math.log(v)
+    return math.exp((math.log(value) - rest) / (w[0] / tot))
+
+
+def _beats(value: float, row: int, lead_value: float, lead_row: int) -> bool:
+    """Whether ``row`` with ``value`` wins over the leader (ties to the earlier frame)."""
+    return value > lead_value or (value == lead_value and row < lead_row)
+
+
+def shortlist_rows(rows: Sequence[int], upper: Sequence[float], k: int) -> list[int]:
+    """The best ``k`` rows by ``upper``, spread over the segment: the rows are cut into ``k``
+    consecutive parts and the best row of each part is taken (ties: earlier row)."""
+    rows = list(rows)
+    if k >= len(rows):
+        return rows
+    parts = np.array_split(np.arange(len(rows)), k)
+    out = []
+    for p in parts:
+        best = min(p.tolist(), key=lambda i: (-upper[i], rows[i]))
+        out.append(rows[best])
+    return sorted(out)
+
+
+def choose_in_segment(
+    rows: Sequence[int],
+    ss: NDArray[np.float64],
+    es: NDArray[np.float64],
+    score: ScoreFn,
+    *,
+    weights: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    min_ms: float = 0.0,
+    ms_max: NDArray[np.float64] | None = None,
+    shortlist: int | None = None,
+    digits: int | None = 6,
+    prepare: Callable[[list[int]], None] | None = None,
+) -> tuple[int | None, dict[int, MSState]]:
+    """The winning row of one segment, and the MS state of every candidate row.
+
+    ``rows``: the segment's candidates (rows passing the SS/ES minimums), ``ss``/``es``: scores
+    indexed by row; ``ms_max``: an upper bound on each row's MS (default SS, capped at 1);
+    ``min_ms``: the MS minimum a kept frame must reach. Returns (None, ...) when no candidate
+    passes ``min_ms`` (a gap). ``digits``: MS is compared as the score records store it (rounded
+    to this many decimals; rounding keeps bounds bounds), so the choice is the one full scoring
+    makes from its records. ``prepare`` is told the order in which candidates may be scored
+    (so frames can be read ahead in that order).
+    """
+    def q(v: float) -> float:
+        return v if digits is None or not math.isfinite(v) else round(v, digits)
+
+    states: dict[int, MSState] = {}
+    hi_ms = {r: float(min(1.0, ss[r] + _SLACK) if ms_max is None else ms_max[r]) for r in rows}
+    for r in rows:
+        states[r] = MSState(0.0, hi_ms[r])
+    if weights[0] <= 0 and min_ms <= 0:
+        # MS does not count: the best by SS and ES, no CNN at all
+        vals = {r: _value(0.0, float(ss[r]), float(es[r]), weights) for r in rows}
+        best = min(rows, key=lambda r: (-vals[r], r)) if rows else None
+        return best, states
+    upper = {r: _value(q(hi_ms[r]), float(ss[r]), float(es[r]), weights) for r in rows}
+    todo = list(rows)
+    if shortlist is not None:
+        todo = shortlist_rows(todo, [upper[r] for r in todo], shortlist)
+    order = sorted(todo, key=lambda r: (-upper[r], r))
+    if prepare is not None:
+        prepare(order)
+    lead: int | None = None
+    lead_value = -math.inf
+    for r in order:
+        if lead is not None and not _beats(upper[r], r, lead_value, lead):
+            break  # sorted by upper bound: no later candidate can win either
+        need = min_ms
+        if lead is not None:
+            to_beat = ms_to_beat(lead_value, float(ss[r]), float(es[r]), weights)
+            if math.isfinite(to_beat):  # (infinite: its score is 0 whatever MS; a tie decides by row)
+                need = max(need, to_beat)
+        st = states[r]
+        res = score(r, need if need > 0 else None, None)
+        st.scored = True
+        st.crops_run += res.crops_run
+        st.m = res.m
+        if not res.exact:
+            st.low, st.high = res.low, res.high
+            if q(st.high) < min_ms or (lead is not None and
+                                    not _beats(_value(q(st.high), float(ss[r]), float(es[r]), weights), r,
+                                               lead_value, lead)):
+                continue  # provably below the minimum or the leader
+            res = score(r, None, res.m)  # it may win: its exact MS decides
+            st.crops_run += res.crops_run
+            st.m = res.m
+        st.low = st.high = float(res.low)
+        st.exact = True
+        if q(st.low) < min_ms:
+            continue
+        v = _value(q(st.low), float(ss[r]), float(es[r]), weights)
+        if lead is None or _beats(v, r, lead_value, lead):
+            lead, lead_value = r, v
+    return lead, states

@@ -1,0 +1,207 @@
+"""Staged segment selection: ResMem only where it can change the map, and the same map as scoring
+every frame with every score.
+
+* :func:`choose_in_segment` against brute force on random segments, with a crop loop that bounds
+  MS the way ResMem's does (ties, minimum MS, normalised MS);
+* ``memlog map`` staged vs every score on the demo fixture with the real ResMem;
+* on the shared EuRoC and Nordland logs at several keep fractions, a spacing and with --dedup,
+  with a stand-in ResMem (a deterministic function of each crop's pixels, so the crop loop,
+  segments, positions and thresholds are the real ones and both runs stay fast).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from memlog.models.resmem import OUTPUT_NAME
+from memlog.outputs.annotated import read_scores
+from memlog.scoring.config import ScoreConfig
+from memlog.scoring.memorability import Memorability
+from memlog.scoring.scorer import Scorer
+from memlog.selection import ScoreTable
+from memlog.selection.config import SelectionConfig
+from memlog.selection.segment import geometric_score, select_segments, SegmentConfig
+from memlog.selection.staged import MSResult, choose_in_segment, ms_to_beat, shortlist_rows
+from memlog.steps import map_scoring
+from memlog.steps.map import MapConfig, make_map
+from memlog.steps.score import score
+from tests.conftest import FIXTURES, shared
+
+DEMO = FIXTURES / "demo.mcap"
+COMP = "/camera/image/compressed"
+
+
+# -- the chooser against brute force --------------------------------------------------------------
+def _crop_loop(m: np.ndarray, w: np.ndarray, threshold: float | None, known: np.ndarray | None,
+               batch: int = 5) -> MSResult:
+    """MS bounds as ResMem's crop loop gives them: crops by decreasing weight, unscored in 0..1."""
+    vals = np.full(25, np.nan) if known is None else np.array(known, dtype=np.float64).reshape(-1)
+    have = ~np.isnan(vals)
+    order = [k for k in np.argsort(-w, kind="stable") if w[k] > 0 and not have[k]]
+    done = float(np.dot(w[have], vals[have]))
+    left = float(w[order].sum())
+    before = int(have.sum())
+    n = 0
+    while n < len(order):
+        if threshold is not None:
+            if done >= threshold + 1e-6:
+                return MSResult(done, done + left, False, vals.copy(), int((~np.isnan(vals)).sum()) - before)
+            if done + left < threshold - 1e-6:
+                return MSResult(done, done + left, False, vals.copy(), int((~np.isnan(vals)).sum()) - before)
+        idx = order[n:n + batch]
+        vals[idx] = m[idx]
+        done += float(np.dot(w[idx], m[idx]))
+        left -= float(w[idx].sum())
+        n += len(idx)
+    ms = float(np.dot(w, np.where(np.isnan(vals), 0.0, vals)))
+    return MSResult(ms, ms, True, vals.copy(), int((~np.isnan(vals)).sum()) - before)
+
+
+@pytest.mark.parametrize("seed", range(60))
+def test_chooser_picks_the_brute_force_winner(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 14))
+    ss = np.round(rng.uniform(0.3, 1.0, n), 6)
+    es = np.round(rng.uniform(0.05, 0.5, n), 6)
+    if seed % 5 == 0:  # exact ties in the cheap scores
+        ss[:] = 1.0
+        es[:] = es[0]
+    weights = [(1.0, 1.0, 1.0), (2.0, 1.0, 1.0), (1.0, 0.0, 2.0)][seed % 3]
+    min_ms = [0.0, 0.0, 0.3][seed % 3]
+    crop_w = [rng.dirichlet(np.ones(25)) * s for s in ss]  # weights sum to SS, as for ResMem
+    crop_m = [rng.uniform(0.4, 0.9, 25) if seed % 7 else np.full(25, 0.6) for _ in range(n)]  # %7==0: equal MS
+    true_ms = np.array([float(np.dot(w, m)) for w, m in zip(crop_w, crop_m)])
+    rounded = np.round(true_ms, 6)
+    calls = {"crops": 0}
+
+    def scorer(row: int, threshold: float | None, known: np.ndarray | None) -> MSResult:
+        r = _crop_loop(crop_m[row], crop_w[row], threshold, known)
+        calls["crops"] += r.crops_run
+        return r
+
+    winner, states = choose_in_segment(list(range(n)), ss, es, scorer, weights=weights, min_ms=min_ms)
+    value = np.where(rounded >= min_ms, geometric_score(rounded, ss, es, weights), -np.inf)
+    best = int(np.lexsort((np.arange(n), -value))[0])
+    want = None if value[best] == -np.inf else best
+    assert winner == want
+    for r, st in states.items():  # bounds are bounds, and exact values are exact
+        assert st.low - 1e-9 <= true_ms[r] <= st.high + 1e-9
+        if st.exact:
+            assert st.low == pytest.approx(true_ms[r], abs=1e-12)
+    if winner is not None:
+        assert states[winner].exact
+    assert calls["crops"] <= 25 * n
+
+
+def test_chooser_skips_what_cannot_win() -> None:
+    """One clear winner by its cheap scores: the others never reach the CNN."""
+    ss = np.array([1.0, 1.0, 1.0, 1.0])
+    es = np.array([0.9, 0.05, 0.04, 0.03])
+    m = [np.full(25, 0.8)] * 4
+    w = [np.full(25, 1 / 25)] * 4
+    scored: list[int] = []
+
+    def scorer(row: int, threshold: float | None, known: np.ndarray | None) -> MSResult:
+        scored.append(row)
+        return _crop_loop(m[row], w[row], threshold, known)
+
+    winner, states = choose_in_segment([0, 1, 2, 3], ss, es, scorer)
+    assert winner == 0 and scored == [0]
+    assert not states[1].scored and states[1].low == 0.0 and states[1].high == pytest.approx(1.0)
+
+
+def test_ms_to_beat_inverts_the_score() -> None:
+    for ss, es, ms in ((0.9, 0.3, 0.7), (1.0, 0.05, 0.2), (0.5, 0.5, 0.99)):
+        for w in ((1.0, 1.0, 1.0), (2.0, 0.0, 1.0)):
+            v = float(geometric_score(ms, ss, es, w)[0])
+            assert ms_to_beat(v, ss, es, w) == pytest.approx(ms, rel=1e-9)
+    assert ms_to_beat(0.5, 0.0, 0.3, (1.0, 1.0, 1.0)) == math.inf
+
+
+def test_shortlist_spreads_over_the_segment() -> None:
+    rows = list(range(10))
+    upper = [0.9, 0.8, 0.1, 0.2, 0.3, 0.95, 0.1, 0.1, 0.5, 0.4]
+    assert shortlist_rows(rows, upper, 3) == [0, 5, 8]
+    assert shortlist_rows(rows, upper, 20) == rows
+
+
+# -- the map step with the real ResMem ------------------------------------------------------------
+def _kept(res: Any) -> dict[str, list[int]]:
+    return {t: s.kept_indices.tolist() for t, s in res.selections.items()}
+
+
+def test_staged_map_equals_full_scoring_with_resmem(tmp_path: Path) -> None:
+    scored = tmp_path / "all.mcap"
+    score(DEMO, scored, ScoreConfig(all_scores=True))
+    for sel in (SelectionConfig(keep_fraction=0.5), SelectionConfig(keep_fraction=0.25, dedup=0.05)):
+        full = make_map(DEMO, tmp_path / "full.mcap", MapConfig(select=sel, topics=(COMP,), descriptor=None),
+                        scores=scored)
+        staged = make_map(DEMO, tmp_path / "staged.mcap", MapConfig(select=sel, topics=(COMP,), descriptor=None))
+        assert _kept(staged) == _kept(full)
+        assert staged.crops_run is not None and staged.crops_full is not None
+        assert staged.crops_run < staged.crops_full  # ResMem skipped where it could not change the map
+        recs = {r["frame_index"]: r for r in read_scores(tmp_path / "staged.mcap")[COMP]}
+        all_recs = {r["frame_index"]: r for r in read_scores(scored)[COMP]}
+        for i in staged.selections[COMP].kept_indices:  # kept frames carry their exact MS
+            assert recs[int(i)]["ms_exact"] and recs[int(i)]["ms"] == pytest.approx(all_recs[int(i)]["ms"], abs=2e-6)
+
+
+# -- shared logs, stand-in ResMem -----------------------------------------------------------------
+class _StandIn:
+    """An ONNX-session stand-in: a crop's 'memorability' is a smooth function of its pixels."""
+
+    def run(self, names: list[str], feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+        assert names == [OUTPUT_NAME]
+        x = next(iter(feeds.values())).astype(np.float64)
+        mean = x.mean(axis=(1, 2, 3))
+        std = x.std(axis=(1, 2, 3))
+        return [(0.5 + 0.4 * np.tanh(3 * (mean - 0.45)) * 0.5 + 0.3 * std).reshape(-1, 1).astype(np.float32)]
+
+
+def _stand_in_scorer(config: ScoreConfig) -> Scorer:
+    mem = Memorability.__new__(Memorability)
+    mem.path, mem.batch, mem.session = Path("stand-in"), 5, _StandIn()
+    return Scorer(config, memorability=mem)
+
+
+@pytest.fixture()
+def stand_in(monkeypatch: pytest.MonkeyPatch) -> None:
+    cache: dict[ScoreConfig, Scorer] = {}
+
+    def scorer_for(config: ScoreConfig) -> Scorer:
+        if config not in cache:
+            cache[config] = _stand_in_scorer(config)
+        return cache[config]
+
+    monkeypatch.setattr(map_scoring, "_scorer_for", scorer_for)
+    from memlog.steps import score as score_mod
+
+    monkeypatch.setattr(score_mod, "_scorer_for", scorer_for)
+
+
+@pytest.mark.parametrize("name,stride", [("euroc_micro_ros2_db3", 3), ("nordland_dev_summer.mcap", 20)])
+def test_staged_map_equals_full_scoring_on_shared_logs(name: str, stride: int, tmp_path: Path,
+                                                        stand_in: None) -> None:
+    log = shared(name)
+    configs = [SelectionConfig(keep_fraction=0.25), SelectionConfig(keep_fraction=0.5, dedup=0.02),
+               SelectionConfig(spacing_s=0.6 if "euroc" in name else 2.0)]
+    for i, sel in enumerate(configs):
+        full = make_map(log, tmp_path / f"full{i}.mcap", MapConfig(score=ScoreConfig(all_scores=True), select=sel,
+                                                                   descriptor=None, stride=stride))
+        staged = make_map(log, tmp_path / f"staged{i}.mcap", MapConfig(select=sel, descriptor=None, stride=stride))
+        assert _kept(staged) == _kept(full), sel
+        assert staged.crops_run is not None and staged.crops_full is not None and full.crops_run is not None
+        assert staged.crops_run <= full.crops_run
+
+
+def test_staged_table_is_what_full_scoring_selects_from() -> None:
+    """Unscored frames enter selection with their lower bound and never win their segment."""
+    t = ScoreTable(index=np.arange(4), t_ns=np.arange(4), ms=np.array([0.7, 0.0, 0.0, 0.6]),
+                   ss=np.ones(4), es=np.array([0.3, 0.1, 0.1, 0.3]))
+    sel = select_segments(t, SegmentConfig(keep_fraction=0.5, by="count"))
+    assert sel.kept_indices.tolist() == [0, 3]
