@@ -249,19 +249,19 @@ class McapLog(LogReader):
             self._indexed = True
             return
         self.report.index_damaged = True
-        why = []
+        reasons: list[str] = []
         if damage is not None:
-            why.append(f"the data section is damaged {damage_place(self._fh, damage.pos, self._size)} ({damage.reason})")
+            reasons.append(f"the data section is damaged {damage_place(self._fh, damage.pos, self._size)} ({damage.reason})")
         missing = sorted(set(walked) - set(index))
         bogus = sorted(set(index) - set(walked))
         if missing:
-            why.append(f"{len(missing)} chunk(s) in the data are not in the index")
+            reasons.append(f"{len(missing)} chunk(s) in the data are not in the index")
         if bogus:
-            why.append(f"{len(bogus)} index entr{'y points' if len(bogus) == 1 else 'ies point'} to no chunk the "
+            reasons.append(f"{len(bogus)} index entr{'y points' if len(bogus) == 1 else 'ies point'} to no chunk the "
                        f"data walk found (first: byte {bogus[0]})")
         if self._top_messages:
-            why.append(f"{self._top_messages} message(s) lie outside chunks")
-        self.warn(f"{self.path}: the chunk index does not match the data ({'; '.join(why)}): reading the data instead")
+            reasons.append(f"{self._top_messages} message(s) lie outside chunks")
+        self.warn(f"{self.path}: the chunk index and the data section disagree ({'; '.join(reasons)}): reading the data instead")
         if self._top_messages:
             self.summary = None  # messages outside chunks: only a sequential read finds them all
             return

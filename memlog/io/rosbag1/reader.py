@@ -105,7 +105,7 @@ class _Ros1Scanner:
         self._chans: dict[int, ChannelInfo] | None = None
 
     @staticmethod
-    def _record(buf: IO[bytes], pos: int, end: int, skip_data: bool = False) -> tuple[dict[str, bytes], bytes, int]:
+    def _record(buf: IO[bytes] | _BytesReader, pos: int, end: int, skip_data: bool = False) -> tuple[dict[str, bytes], bytes, int]:
         """The record at ``pos`` (``buf`` positioned there): fields, data (b"" when skipped), next pos."""
         head = buf.read(4)
         if len(head) < 4:
@@ -264,15 +264,15 @@ class _Ros1Scanner:
                     rep.bad_messages += 1
                     self.owner.warn(f"{self.path}: message record in chunk {n} is damaged ({exc.reason}); skipped")
                     continue
-                ch = chans.get(cid)
-                if ch is None:
+                found = chans.get(cid)
+                if found is None:
                     rep.bad_messages += 1
                     self.owner.warn(f"{self.path}: message on unknown connection {cid} at log time {t}: skipped")
                     continue
-                if (topics is not None and ch.topic not in topics) or (start_ns is not None and t < start_ns) or (
+                if (topics is not None and found.topic not in topics) or (start_ns is not None and t < start_ns) or (
                         end_ns is not None and t >= end_ns):
                     continue
-                group.append((t, RawMessage(ch, t, t, 0, data)))
+                group.append((t, RawMessage(found, t, t, 0, data)))
             yield group
 
         yield from merge_groups(groups())
@@ -325,7 +325,7 @@ class Ros1BagLog(LogReader):
         elif problems is not None:
             self.report.index_damaged = True
             self.warn(f"{self.path}: bag index unusable ({problems}); reading the records themselves")
-        if problems is None and sk.damage is None and sk.index_start is not None:
+        if problems is None and sk.damage is None and sk.index_start is not None and self._reader is not None:
             for c in self._reader.connections:
                 self._chans[c.id] = self._channel(c)
             return

@@ -428,9 +428,9 @@ class Ros2BagLog(LogReader):
             if counts is None:
                 return None
             for cid, n in counts.items():
-                gid = self._gid.get((-1 - i, cid))
-                if gid is not None:
-                    out[gid] = out.get(gid, 0) + n
+                g = self._gid.get((-1 - i, cid))
+                if g is not None:
+                    out[g] = out.get(g, 0) + n
         return out
 
     def checksums(self) -> str:
