@@ -237,6 +237,8 @@ class McapLog(LogReader):
         if summary is None or not summary.channels:
             if (summary is not None and summary.chunk_indexes) or "CRC" in why or "parse" in why or "outside" in why:
                 self.report.index_damaged = True
+            if why.startswith("no footer"):
+                self.report.truncated = True
             self.summary = None
             self.warn(f"{self.path}: {why or 'the summary lists no channels'}: reading the data sequentially")
             self._scan_channels()
@@ -245,7 +247,10 @@ class McapLog(LogReader):
             return  # unchunked file (or no messages): read sequentially, channels from the summary
         walked, damage = self._walk_chunks(summary_start)
         index = {ci.chunk_start_offset: ci for ci in summary.chunk_indexes}
-        if damage is None and set(walked) == set(index) and not self._top_messages:
+        differ = [o for o, r in walked.items() if o in index and (
+            index[o].chunk_length != r.index_length or index[o].message_start_time != r.start
+            or index[o].message_end_time != r.end)]
+        if damage is None and set(walked) == set(index) and not self._top_messages and not differ:
             self._indexed = True
             return
         self.report.index_damaged = True
@@ -259,13 +264,16 @@ class McapLog(LogReader):
         if bogus:
             reasons.append(f"{len(bogus)} index entr{'y points' if len(bogus) == 1 else 'ies point'} to no chunk the "
                        f"data walk found (first: byte {bogus[0]})")
+        if differ:
+            reasons.append(f"{len(differ)} index entr{'y gives' if len(differ) == 1 else 'ies give'} another length or "
+                           f"time range than the chunk record (first: byte {differ[0]})")
         if self._top_messages:
             reasons.append(f"{self._top_messages} message(s) lie outside chunks")
         self.warn(f"{self.path}: the chunk index and the data section disagree ({'; '.join(reasons)}): reading the data instead")
         if self._top_messages:
             self.summary = None  # messages outside chunks: only a sequential read finds them all
             return
-        refs = dict(walked)
+        refs = {o: _ChunkRef(r.offset, r.start, r.end) for o, r in walked.items()}
         for off in bogus:  # past damage the index may still lead to intact chunks: try them
             ci = index[off]
             refs[off] = _ChunkRef(off, ci.message_start_time, ci.message_end_time, ci.chunk_length)
@@ -288,7 +296,7 @@ class McapLog(LogReader):
                     if len(head) < _CHUNK_HEAD:
                         raise _Damage(pos, "chunk record is too short")
                     s, e = struct.unpack_from("<QQ", head, 0)
-                    found[pos] = _ChunkRef(pos, s, e)
+                    found[pos] = _ChunkRef(pos, s, e, 9 + n)
                 elif op == _MESSAGE:
                     self._top_messages += 1
                 elif op == _DATA_END or op == _FOOTER:

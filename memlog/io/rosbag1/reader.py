@@ -163,7 +163,12 @@ class _Ros1Scanner:
 
     def _chunk_records(self, fields: dict[str, bytes], data: bytes, pos: int) -> Iterator[tuple[dict[str, bytes], bytes]]:
         comp = fields.get("compression", b"none").decode(errors="replace")
-        raw = decompress(comp, data, _u32(fields, "size", pos)) if comp != "none" else data
+        size = _u32(fields, "size", pos)
+        if comp == "none" and size != len(data):
+            self.owner.report.index_damaged = True
+            self.owner.warn(f"{self.path}: chunk at byte {pos} declares {size} bytes, holds {len(data)}; "
+                            "reading what it holds")
+        raw = decompress(comp, data, size) if comp != "none" else data
         buf = _BytesReader(raw)
         at = 0
         while at < len(raw):
@@ -250,12 +255,20 @@ class _Ros1Scanner:
                     group, current = [], n
                 op = fields["op"][0]
                 if op == _OP_CONN:
-                    if self._chans is None:  # trusted index: note connections it lacks
+                    if self._chans is None:  # trusted index: the data's connection record wins
                         try:
                             ch = self.conn(fields, data)
                         except _Bad:
                             continue
-                        chans.setdefault(ch.id, ch)
+                        old = chans.get(ch.id)
+                        if old is not None and (old.topic, old.msgtype, old.metadata.get("md5sum")) != (
+                                ch.topic, ch.msgtype, ch.metadata.get("md5sum")):
+                            rep.index_damaged = True
+                            self.owner.warn(f"{self.path}: the index describes connection {ch.id} as {old.topic!r} "
+                                            f"({old.msgtype}), the data as {ch.topic!r} ({ch.msgtype}): using the data's")
+                            chans[ch.id] = ch
+                        elif old is None:
+                            chans[ch.id] = ch
                     continue
                 try:
                     cid = _u32(fields, "conn", 0)
@@ -406,7 +419,26 @@ class Ros1BagLog(LogReader):
     def _iter_messages(
         self, topics: set[str] | None, start_ns: int | None, end_ns: int | None, log_time_order: bool
     ) -> Iterator[RawMessage]:
-        yield from self._scan.messages(self._chans, topics, start_ns, end_ns)
+        full = self._reader is not None and start_ns is None and end_ns is None
+        seen: list[tuple[int, int]] = []
+        for m in self._scan.messages(self._chans, topics, start_ns, end_ns):
+            if full:
+                seen.append((m.channel.id, m.log_time))
+            yield m
+        if full and self.report.ok:
+            self._check_index_times(seen, topics)
+
+    def _check_index_times(self, seen: list[tuple[int, int]], topics: set[str] | None) -> None:
+        """After a full read: the index's (connection, time) entries must be the data's."""
+        from collections import Counter
+
+        ids = {c.id for c in self._chans.values() if topics is None or c.topic in topics}
+        index = Counter((cid, e.time) for cid, entries in self._reader.indexes.items() if cid in ids for e in entries)
+        if index != Counter(seen):
+            self.report.index_damaged = True
+            self.warn(f"{self.path}: the bag's index data records do not match its messages "
+                      f"({sum((index - Counter(seen)).values())} index entries have no such message); "
+                      "the messages were read from the data")
 
 
 def damage_place_s(log: Ros1BagLog, pos: int) -> str:

@@ -390,6 +390,11 @@ class Ros2BagLog(LogReader):
         elif counts is not None and claimed != have:
             problems.append("its message counts differ from the storage's "
                             + ", ".join(f"{k[0]} {claimed[k]} vs {have[k]}" for k in claimed if claimed[k] != have[k]))
+        kinds = {"sqlite3"} if self._dbs else set()
+        kinds |= {"mcap"} if self._mcaps else set()
+        storage = str(meta.get("storage_identifier") or "")
+        if storage not in kinds or len(kinds) > 1:
+            problems.append(f"its storage is {storage!r}, the files are {' and '.join(sorted(kinds))}")
         mode = str(meta.get("compression_mode") or "").lower()
         fmt = str(meta.get("compression_format") or "").lower()
         zipped = any(f.name.endswith(".zstd") for f in files)
