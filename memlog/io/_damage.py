@@ -52,11 +52,30 @@ def _zero_from(fh: IO[bytes], pos: int, size: int) -> int | None:
     return pos
 
 
+def _zero_run_start(fh: IO[bytes], pos: int) -> int:
+    """Where the run of zero bytes that ends at ``pos`` begins (reading backwards in blocks)."""
+    block = 1 << 16
+    at = pos
+    while at > 0:
+        lo = max(0, at - block)
+        fh.seek(lo)
+        buf = fh.read(at - lo)
+        stripped = buf.rstrip(b"\0")
+        if len(stripped) < len(buf) and stripped:
+            return lo + len(stripped)
+        if stripped:
+            return at
+        at = lo
+    return 0
+
+
 def damage_place(fh: IO[bytes], pos: int, size: int) -> str:
-    """Where damage found at byte ``pos`` is, in words: a zero-filled tail is named as such
-    (an interrupted recording leaves one), anything else by its byte offset."""
+    """Where damage found at byte ``pos`` is, in words: a zero-filled tail is named from where the
+    zeros start (an interrupted recording leaves one), anything else by its byte offset."""
     if pos < size and _zero_from(fh, pos, size) is not None:
-        return f"zero-filled from byte {pos} to the end ({size - pos} bytes of zeros, an interrupted recording?)"
+        start = _zero_run_start(fh, pos)
+        return (f"zero-filled from byte {start} to the end ({size - start} bytes of zeros, an interrupted "
+                "recording?)")
     return f"near byte {pos} of {size}"
 
 
@@ -66,27 +85,35 @@ def decompress(kind: str, data: bytes, size: int) -> bytes:
     (ValueError), not a memory bill."""
     if size < 0 or size > MAX_CHUNK_BYTES:
         raise ValueError(f"chunk declares {size} bytes uncompressed (more than {MAX_CHUNK_BYTES})")
+    try:
+        out = _inflate(kind, data, size)
+    except ValueError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - zstd, lz4 (RuntimeError) and bz2 (OSError) fail differently
+        raise ValueError(f"{kind} data does not decompress ({type(exc).__name__}: {exc})") from None
+    if len(out) != size:
+        raise ValueError(f"chunk inflates to {len(out)}{'+' if len(out) > size else ''} bytes, declares {size}")
+    return out
+
+
+def _inflate(kind: str, data: bytes, size: int) -> bytes:
     if kind in ("", "none"):
-        out = data
+        return data
     elif kind == "zstd":
         import zstandard
 
         with zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=True) as r:
-            out = r.read(size + 1)
+            return r.read(size + 1)
     elif kind == "lz4":
         import lz4.frame
 
         d = lz4.frame.LZ4FrameDecompressor()
-        out = d.decompress(data, max_length=size + 1)
+        return bytes(d.decompress(data, max_length=size + 1))
     elif kind == "bz2":
         import bz2
 
-        out = bz2.BZ2Decompressor().decompress(data, max_length=size + 1)
-    else:
-        raise ValueError(f"unknown chunk compression {kind!r}")
-    if len(out) != size:
-        raise ValueError(f"chunk inflates to {len(out)}{'+' if len(out) > size else ''} bytes, declares {size}")
-    return out
+        return bz2.BZ2Decompressor().decompress(data, max_length=size + 1)
+    raise ValueError(f"unknown chunk compression {kind!r}")
 
 
 def merge_groups(groups: Iterable[list[tuple[int, T]]]) -> Iterator[T]:

@@ -152,6 +152,7 @@ class McapLog(LogReader):
         self._data_channels: set[int] = set()  # channel ids confirmed by a record in the data
         self._chunks_crc: list[bool] = []  # per chunk read: was its CRC checked
         self._top_messages = 0
+        self._damage_told = False  # the sequential read's damage warning is given once
         self._indexed = False  # the summary's chunk index drives the reads
         self._chunks: list[_ChunkRef] | None = None  # chunks to read when the index is not trusted
         try:
@@ -529,8 +530,9 @@ class McapLog(LogReader):
                 pos += 9 + n
         except _Damage as exc:
             rep = self.report
-            if not rep.truncated:
-                rep.truncated = True
+            rep.truncated = True
+            if not self._damage_told:
+                self._damage_told = True
                 rep.bytes_read = exc.pos
                 self.warn(f"{self.path}: log is truncated or damaged {damage_place(self._fh, exc.pos, size)} "
                           f"({exc.reason}); read everything before it")
