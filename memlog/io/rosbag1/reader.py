@@ -175,7 +175,7 @@ class _Ros1Scanner:
             f2, d2, at = self._record(buf, at, len(raw))
             yield f2, d2
 
-    def walk(self) -> Iterator[tuple[int, dict[str, bytes], bytes]]:
+    def walk(self, chunks: set[int] | None = None) -> Iterator[tuple[int, dict[str, bytes], bytes]]:
         """(chunk number, fields, data) of message and connection records, chunks expanded, in
         file order (records outside chunks get chunk number -1). Damage is reported; the walk
         goes on at the next chunk the index knows, or stops."""
@@ -200,7 +200,9 @@ class _Ros1Scanner:
                     pos = later[0]
                     continue
                 op = fields["op"][0]
-                if op == _OP_CHUNK:
+                if op == _OP_CHUNK and chunks is not None and pos not in chunks:
+                    pass  # the trusted index says it holds none of the wanted connections
+                elif op == _OP_CHUNK:
                     n_chunk += 1
                     try:
                         for f2, d2 in self._chunk_records(fields, data, pos):
@@ -242,14 +244,14 @@ class _Ros1Scanner:
         return self._chans
 
     def messages(self, chans: dict[int, ChannelInfo], topics: set[str] | None, start_ns: int | None,
-                 end_ns: int | None) -> Iterator[RawMessage]:
+                 end_ns: int | None, chunks: set[int] | None = None) -> Iterator[RawMessage]:
         """Messages in log-time order (chunks merged)."""
         rep = self.owner.report
 
         def groups() -> Iterator[list[tuple[int, RawMessage]]]:
             group: list[tuple[int, RawMessage]] = []
             current = None
-            for n, fields, data in self.walk():
+            for n, fields, data in self.walk(chunks):
                 if n != current or n == -1:
                     yield group
                     group, current = [], n
@@ -421,7 +423,12 @@ class Ros1BagLog(LogReader):
     ) -> Iterator[RawMessage]:
         full = self._reader is not None and start_ns is None and end_ns is None
         seen: list[tuple[int, int]] = []
-        for m in self._scan.messages(self._chans, topics, start_ns, end_ns):
+        chunks = None
+        if self._reader is not None and (topics is not None or start_ns is not None or end_ns is not None):
+            ids = {c.id for c in self._chans.values() if topics is None or c.topic in topics}
+            chunks = {ci.pos for ci in self._reader.chunk_infos if ids & set(ci.connection_counts)
+                      and (start_ns is None or ci.end_time > start_ns) and (end_ns is None or ci.start_time < end_ns)}
+        for m in self._scan.messages(self._chans, topics, start_ns, end_ns, chunks):
             if full:
                 seen.append((m.channel.id, m.log_time))
             yield m
