@@ -581,7 +581,7 @@ def _cli(args: list[str]) -> tuple[int, str]:
 
 
 def _temp_files() -> set[str]:
-    return {p.name for p in Path(tempfile.gettempdir()).glob("memlog-*")}
+    return {p.name for p in Path(tempfile.gettempdir()).iterdir()}
 
 
 @dataclass
@@ -612,11 +612,13 @@ def run_case(case: Case, work: Path, limit: int = 120) -> Outcome:
     out = Outcome(case.name, case.kind, case.source)
     inp_dir = work / "in"
     out_dir = work / "out"
-    for d in (inp_dir, out_dir):
+    tmp_dir = work / "tmp"  # the temporary directory of this case (other processes use the system one)
+    for d in (inp_dir, out_dir, tmp_dir):
         shutil.rmtree(d, ignore_errors=True)
         d.mkdir(parents=True)
     path = case.build(inp_dir)
     before = _tree_hash(path)
+    old_tmp, tempfile.tempdir = tempfile.tempdir, str(tmp_dir)
     temps = _temp_files()
     t0 = time.perf_counter()
     got: list[Key] = []
@@ -652,6 +654,7 @@ def run_case(case: Case, work: Path, limit: int = 120) -> Outcome:
     if _tree_hash(path) != before:
         out.problems.append("input modified")
     left = _temp_files() - temps
+    tempfile.tempdir = old_tmp
     if left:
         out.problems.append(f"temporary files left: {sorted(left)}")
     extra = [p.name for p in out_dir.iterdir() if p.name != "out.mcap"]
