@@ -24,8 +24,22 @@ def info(text: str) -> None:
         print(text, file=sys.stderr)
 
 
+def _status(desc: str, n: int, total: int | None, unit: str, elapsed: float, done: bool) -> str:
+    rate = n / elapsed if elapsed > 0 else 0.0
+    of = f"/{total}" if total is not None else ""
+    pct = f" ({100 * n / total:.0f} %)" if total else ""
+    if done:
+        return f"memlog: {desc}: {n}{of} {unit}s{pct} in {elapsed:.1f} s ({rate:.2f}/s)"
+    if total is not None and rate > 0:
+        left = f", about {max(0.0, (total - n) / rate):.0f} s left"
+    else:
+        left = ", total unknown" if total is None else ""
+    return f"memlog: {desc}: {n}{of} {unit}s{pct} ({rate:.2f}/s{left})"
+
+
 def _log_lines(it: Iterable[T], total: int | None, desc: str, unit: str, every_s: float) -> Iterator[T]:
-    """Off a terminal (CI, nohup): a plain status line every ``every_s`` seconds."""
+    """Off a terminal (CI, nohup): a status line with the total and the time left every
+    ``every_s`` seconds, and one when the loop ends."""
     t0 = last = time.monotonic()
     n = 0
     for x in it:
@@ -34,10 +48,8 @@ def _log_lines(it: Iterable[T], total: int | None, desc: str, unit: str, every_s
         now = time.monotonic()
         if now - last >= every_s:
             last = now
-            rate = n / (now - t0)
-            of = f"/{total}" if total else ""
-            eta = f", about {(total - n) / rate:.0f} s left" if total and rate > 0 else ""
-            print(f"memlog: {desc}: {n}{of} {unit}s ({rate:.2f}/s{eta})", file=sys.stderr, flush=True)
+            print(_status(desc, n, total, unit, now - t0, False), file=sys.stderr, flush=True)
+    print(_status(desc, n, total, unit, time.monotonic() - t0, True), file=sys.stderr, flush=True)
 
 
 def progress(it: Iterable[T], *, total: int | None = None, desc: str = "", unit: str = "msg",
@@ -52,4 +64,6 @@ def progress(it: Iterable[T], *, total: int | None = None, desc: str = "", unit:
         return
     from tqdm import tqdm
 
-    yield from tqdm(it, total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=False, **kw)
+    # miniters=1: the count on screen follows every item (a fast copy showed "0msg" until it ended)
+    yield from tqdm(it, total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=False, miniters=1,
+                    mininterval=0.2, **kw)

@@ -198,3 +198,39 @@ def test_shared_logs_stream_and_decode(name: str) -> None:
         expected = {t.topic: t.count for t in info.topics}[cams[0]]
         assert n == expected
         assert log.report.ok
+
+
+@pytest.mark.parametrize("name", ["demo.mcap", "ros1.bag", "ros2_sqlite", "ros2_mcap", "foxglove_json.mcap",
+                                  "foxglove_proto.mcap", "ros2idl.mcap", "ros1.mcap", "encodings.mcap"])
+def test_topic_times_and_frame_totals_come_from_the_index(name: str) -> None:
+    """topic_times equals the log times a full read finds (without reading message data), messages
+    come in log-time order, and count_frames gives the number of frames stream() yields for
+    any window and stride (the progress bars' totals)."""
+    from memlog.io import FrameWindow
+
+    with open_log(FIXTURES / name) as log:
+        times = [m.log_time for m in log.messages()]
+        assert times == sorted(times)
+        for topic in log.camera_topics():
+            seen = [m.log_time for m in log.messages([topic])]
+            got = log.topic_times(topic)
+            assert got is not None and list(got) == seen
+            for start, end, stride in ((None, None, 2), (seen[len(seen) // 2], None, 1),
+                                       (seen[0] + 1, seen[-1], 3), (None, seen[-1], 2)):
+                if start is not None and end is not None and end <= start:
+                    continue
+                w = FrameWindow((topic,), start, end, stride)
+                n = sum(1 for _ in log.stream([topic], start_ns=start, end_ns=end, stride=stride))
+                assert log.count_frames(w) == n, (topic, start, end, stride)
+
+
+def test_progress_lines_off_a_terminal_have_totals_and_eta(monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    import memlog.progress as progress
+
+    clock = iter(range(0, 1000, 10))
+    monkeypatch.setattr(progress.time, "monotonic", lambda: float(next(clock)))
+    monkeypatch.setattr(progress, "_QUIET", False)
+    assert list(progress.progress(range(4), total=4, desc="score", unit="frame", every_s=15.0)) == [0, 1, 2, 3]
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines[0].startswith("memlog: score: 2/4 frames (50 %)") and "s left" in lines[0]
+    assert lines[-1].startswith("memlog: score: 4/4 frames (100 %) in ")

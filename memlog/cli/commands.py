@@ -16,6 +16,7 @@ from typing import Any
 from memlog.cli.common import EXIT_ERROR, EXIT_OK, fmt3, fmt_ns, fmt_size, report_damage, table
 from memlog.cli.flags import (
     add_config_flags,
+    add_max_pixels,
     add_selection_flags,
     add_window_flags,
     file_section,
@@ -43,17 +44,27 @@ def add_inspect(sub: Any) -> None:
     p.set_defaults(func=cmd_inspect)
 
 
+_CHECKSUMS = {
+    "all": "every chunk CRC verified",
+    "some": "some chunks have no CRC: damage in those cannot be detected",
+    "none": "no checksums: damage cannot be detected",
+    "unknown": "not checked",
+}
+
+
 def cmd_inspect(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
     from memlog.io.open import open_log
 
     with open_log(args.log) as log:
-        inf = log.info()
+        inf = log.info(scan=True)  # read every record: counts are the data's, checksums verified
+        checks = _CHECKSUMS[log.checksums()]
         if args.json:
             d = asdict(inf)
             d["duration_s"] = inf.duration_s
             d["camera_topics"] = inf.camera_topics
+            d["checksums"] = log.checksums()
             d["warnings"] = list(log.report.warnings)
             print(json.dumps(d, indent=2))
             return report_damage(log.report)
@@ -65,6 +76,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         print(f"end:       {fmt_ns(inf.end_ns)}")
         print(f"duration:  {inf.duration_s:.3f} s")
         print(f"messages:  {sum(t.count for t in inf.topics)}")
+        print(f"integrity: {checks}")
         print()
         rows = [[t.topic, t.msgtype, t.encoding, str(t.count), "camera" if t.is_camera else ""]
                 for t in sorted(inf.topics, key=lambda t: t.topic)]
@@ -315,6 +327,7 @@ def add_localize(sub: Any) -> None:
     p.add_argument("-o", "--output", required=True, help="matches .parquet or .csv (its directory must exist)")
     p.add_argument("-k", type=positive_int, default=5, help="reference frames per query (default 5)")
     add_window_flags(p, "localize")
+    add_max_pixels(p)
     p.add_argument("--annotate", metavar="OUT.mcap", help="also write the query log with a T/memlog/match channel")
     p.add_argument("--query-descriptors", metavar="PATH",
                    help="cache query descriptors here (reused only when made from the same query log and window)")

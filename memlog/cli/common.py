@@ -36,6 +36,10 @@ def report_damage(*reports: ReadReport) -> int:
             parts.append(f"{report.bad_messages} message(s) did not deserialize")
         if report.undecodable_frames:
             parts.append(f"{report.undecodable_frames} frame(s) did not decode")
+        if report.skipped_files:
+            parts.append(f"{report.skipped_files} unreadable storage file(s) skipped")
+        if report.index_damaged:
+            parts.append("its index is damaged or disagrees with the data (the data was read)")
         print(f"memlog: {report.path}: finished with damaged input: {'; '.join(parts)}", file=sys.stderr)
         code = EXIT_DAMAGED
     return code

@@ -129,6 +129,24 @@ def _resolve_time(text: str | None, log_start_ns: Callable[[], int | None], flag
 
 
 # -- flag groups ----------------------------------------------------------------------------------
+class _MaxPixels(argparse.Action):
+    """--max-pixels N: sets the decoded-pixel cap for this run and its worker processes."""
+
+    def __call__(self, parser: argparse.ArgumentParser, ns: argparse.Namespace, values: Any,
+                 option: str | None = None) -> None:
+        from memlog.io.image import set_max_pixels
+
+        set_max_pixels(int(values))
+        setattr(ns, self.dest, values)
+
+
+def add_max_pixels(p: argparse.ArgumentParser) -> None:
+    """``--max-pixels``: frames larger than this are reported and skipped before decoding."""
+    p.add_argument("--max-pixels", type=positive_int, action=_MaxPixels, metavar="N",
+                   help="skip (and report) frames of more than N pixels, checked from the image header before "
+                        "decoding (default 100000000)")
+
+
 def add_config_flags(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("scoring (defaults: the paper's; the --config file < flags)")
     g.add_argument("--config", metavar="FILE",
@@ -150,6 +168,7 @@ def add_config_flags(p: argparse.ArgumentParser) -> None:
                    help="with --fast: the int8 estimate decides every frame alone (faster near MT; decisions "
                         "within its error of MT may differ from exact mode)")
     g.add_argument("--normalize", choices=["all", "static"], help="divide MS/ES by all pixels (paper) or static pixels")
+    add_max_pixels(g)  # type: ignore[arg-type]
     g.add_argument("--threads", type=nonneg_int, help="ONNX Runtime threads per process (default 0: every core)")
     g.add_argument("--device", choices=["auto", "cpu", "cuda"],
                    help="where the models run (default auto: a CUDA GPU when onnxruntime-gpu sees one, else the CPU)")

@@ -111,6 +111,12 @@ class LogReader(ABC):
         """Messages per channel id from an index, or None when only a full scan can tell."""
         return None
 
+    def checksums(self) -> str:
+        """What the data read so far was checked against: ``"all"`` (every chunk had a CRC and
+        was checked), ``"some"``, ``"none"`` (the format or file has no checksums: flipped bytes
+        cannot be detected) or ``"unknown"`` (nothing read yet)."""
+        return "none"
+
     def close(self) -> None:
         """Release the file."""
 
@@ -154,23 +160,50 @@ class LogReader(ABC):
                 raise LogReadError(
                     f"{self.path}: no topic {', '.join(sorted(missing))} (topics: {', '.join(self.topics())})"
                 )
-        return self._iter_messages(wanted, start_ns, end_ns, log_time_order)
+        it = self._iter_messages(wanted, start_ns, end_ns, log_time_order)
+        if start_ns is not None or end_ns is not None:
+            return it
+        return self._check_counts(it, wanted)
 
-    def info(self) -> LogInfo:
-        """Topic table: type, encoding, count and time range (uses the index when there is one)."""
-        chans = self.channels()
-        counts = self.message_counts()
+    def _check_counts(self, it: Iterator[RawMessage], topics: set[str] | None) -> Iterator[RawMessage]:
+        """Pass ``it`` through; once it has run to its end, compare the messages per channel with
+        what the index claims. A difference that no other damage explains means the index lies
+        (reported; :attr:`ReadReport.index_damaged`)."""
+        index = self.message_counts()
+        seen: dict[int, int] = {}
+        for m in it:
+            cid = m.channel.id
+            seen[cid] = seen.get(cid, 0) + 1
+            yield m
+        if index is None or not self.report.ok:
+            return
+        wrong = []
+        for ch in self.channels():
+            if topics is None or ch.topic in topics:
+                claimed, found = index.get(ch.id, 0), seen.get(ch.id, 0)
+                if claimed != found:
+                    wrong.append(f"{ch.topic}: index {claimed}, data {found}")
+        if wrong:
+            self.report.index_damaged = True
+            self.warn(f"{self.path}: the index does not match the data (messages per topic: {'; '.join(wrong)}); "
+                      "the data's messages were read")
+
+    def info(self, scan: bool = False) -> LogInfo:
+        """Topic table: type, encoding, count and time range. From the index when there is one,
+        unless ``scan``: then every message is read (verifying checksums where the format has
+        them) and the counts are the data's."""
+        counts = None if scan else self.message_counts()
         ranges: dict[int, list[int]] = {}
         if counts is None:
             counts = {}
-            for m in self._iter_messages(None, None, None, False):
+            for m in self.messages(log_time_order=False):
                 cid = m.channel.id
                 counts[cid] = counts.get(cid, 0) + 1
                 r = ranges.setdefault(cid, [m.log_time, m.log_time])
                 r[0] = min(r[0], m.log_time)
                 r[1] = max(r[1], m.log_time)
         by_topic: dict[str, TopicInfo] = {}
-        for c in chans:
+        for c in self.channels():
             t = by_topic.get(c.topic)
             rng = ranges.get(c.id)
             if t is None:
@@ -182,7 +215,8 @@ class LogReader(ABC):
                 t.start_ns = rng[0] if t.start_ns is None else min(t.start_ns, rng[0])
                 t.end_ns = rng[1] if t.end_ns is None else max(t.end_ns, rng[1])
         info = LogInfo(self.path, self.format, self.size_bytes, profile=self.profile, topics=list(by_topic.values()))
-        self._fill_time_range(info)
+        if not ranges:
+            self._fill_time_range(info)
         starts = [t.start_ns for t in info.topics if t.start_ns is not None]
         ends = [t.end_ns for t in info.topics if t.end_ns is not None]
         if info.start_ns is None and starts:

@@ -19,6 +19,8 @@ Conventions, chosen to match ``cv_bridge`` so frames look the same as in ROS too
 from __future__ import annotations
 
 from collections.abc import Callable
+import os
+import struct
 from dataclasses import dataclass
 
 import cv2
@@ -29,12 +31,44 @@ from memlog.errors import ImageDecodeError
 from memlog.io.types import ImagePayload
 
 __all__ = [
+    "DEFAULT_MAX_PIXELS",
     "SUPPORTED_RAW_ENCODINGS",
     "decode_bgr",
     "decode_gray",
     "decode_native",
+    "image_size",
     "is_decodable",
+    "max_pixels",
+    "set_max_pixels",
 ]
+
+#: Largest image (width x height) memlog decodes unless told otherwise (``--max-pixels``,
+#: ``MEMLOG_MAX_PIXELS``): 100 MP is ten times a 4K frame; a frame above it is reported and
+#: skipped before any pixel is decoded (a 1 MB PNG can declare 32768x32768 = 1 GP, 3 GB as BGR).
+DEFAULT_MAX_PIXELS = 100_000_000
+_ENV = "MEMLOG_MAX_PIXELS"
+
+
+def max_pixels() -> int:
+    """The decoded-pixel cap in force (``MEMLOG_MAX_PIXELS``, else :data:`DEFAULT_MAX_PIXELS`)."""
+    try:
+        return max(1, int(os.environ.get(_ENV, DEFAULT_MAX_PIXELS)))
+    except ValueError:
+        return DEFAULT_MAX_PIXELS
+
+
+def set_max_pixels(n: int) -> None:
+    """Set the cap for this process and the worker processes it starts (kept in the environment)."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"max pixels must be an integer >= 1, got {n!r}")
+    os.environ[_ENV] = str(n)
+
+
+def _check_pixels(w: int, h: int, what: str) -> None:
+    cap = max_pixels()
+    if w * h > cap:
+        raise ImageDecodeError(f"{what} is {w}x{h} = {w * h / 1e6:.1f} MP, more than the cap of {cap} pixels "
+                               "(--max-pixels); not decoded")
 
 Array = npt.NDArray[np.generic]
 _Convert = Callable[[Array], Array]
@@ -112,6 +146,7 @@ def _raw_geometry(payload: ImagePayload) -> _RawGeometry:
     w, h = payload.width, payload.height
     if w <= 0 or h <= 0:
         raise ImageDecodeError(f"raw {name} image has invalid size {w}x{h}")
+    _check_pixels(w, h, f"raw {name} image")
     if layout.even_width and w % 2:
         raise ImageDecodeError(f"raw {name} image width {w} must be even (4:2:2 pixel pairs)")
     row_bytes = w * layout.bytes_per_pixel
@@ -175,6 +210,73 @@ def _sniff(data: bytes) -> str | None:
     return next((name for name, match in _MAGIC if match(head)), None)
 
 
+def image_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) an image stream declares in its header, without decoding it: PNG, JPEG,
+    GIF, BMP, WebP and PNM; None for other containers or a header that does not parse."""
+    b = bytes(data[:64])
+    try:
+        if b.startswith(b"\x89PNG\r\n\x1a\n") and b[12:16] == b"IHDR":
+            w, h = struct.unpack(">II", b[16:24])
+            return int(w), int(h)
+        if b[:6] in (b"GIF87a", b"GIF89a"):
+            w, h = struct.unpack("<HH", b[6:10])
+            return int(w), int(h)
+        if b.startswith(b"BM") and len(b) >= 26:
+            w, h = struct.unpack("<ii", b[18:26])
+            return abs(int(w)), abs(int(h))
+        if b[:4] == b"RIFF" and b[8:12] == b"WEBP":
+            kind = b[12:16]
+            if kind == b"VP8 " and b[23:26] == b"\x9d\x01\x2a":
+                w, h = struct.unpack("<HH", b[26:30])
+                return int(w) & 0x3FFF, int(h) & 0x3FFF
+            if kind == b"VP8L" and b[20] == 0x2F:
+                bits = int.from_bytes(b[21:25], "little")
+                return (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
+            if kind == b"VP8X":
+                return int.from_bytes(b[24:27], "little") + 1, int.from_bytes(b[27:30], "little") + 1
+            return None
+        if b.startswith(b"\xff\xd8"):
+            return _jpeg_size(data)
+        if len(b) > 2 and b[:1] == b"P" and b[1:2] in b"1234567" and b[2:3].isspace():
+            words = bytes(data[:256]).split(b"\n")
+            nums: list[int] = []
+            for line in words[1:]:
+                line = line.split(b"#", 1)[0]
+                nums += [int(x) for x in line.split()]
+                if len(nums) >= 2:
+                    return nums[0], nums[1]
+    except (struct.error, ValueError, IndexError):
+        return None
+    return None
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """Width and height from the first SOF marker of a JPEG stream (markers walked, not decoded)."""
+    at = 2
+    n = len(data)
+    while at + 4 <= n:
+        if data[at] != 0xFF:
+            return None
+        marker = data[at + 1]
+        if marker == 0xFF:  # fill byte
+            at += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            at += 2
+            continue
+        seg = int.from_bytes(data[at + 2 : at + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if at + 9 > n:
+                return None
+            h = int.from_bytes(data[at + 5 : at + 7], "big")
+            w = int.from_bytes(data[at + 7 : at + 9], "big")
+            return w, h
+        if marker == 0xDA or seg < 2:  # start of scan before any frame header
+            return None
+        at += 2 + seg
+    return None
+
+
 def _format_codec(fmt: str) -> str:
     """Codec word of a format string: ``"bgr8; jpeg compressed bgr8"`` -> ``"jpeg"``."""
     text = fmt.split(";", 1)[1] if ";" in fmt else fmt
@@ -206,6 +308,9 @@ def _compressed_native(payload: ImagePayload) -> Array:
     bit depth and alpha and ignores EXIF rotation (camera frames are stored as taken).
     """
     codec = _check_compressed(payload)
+    dims = image_size(payload.data)
+    if dims is not None:
+        _check_pixels(dims[0], dims[1], f"{codec} image")
     buf = np.frombuffer(payload.data, dtype=np.uint8)
     try:
         img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
@@ -217,6 +322,8 @@ def _compressed_native(payload: ImagePayload) -> Array:
             f"format {payload.encoding!r})"
         )
     arr: Array = np.asarray(img)
+    if dims is None:  # a container whose header memlog does not parse: check after the fact
+        _check_pixels(int(arr.shape[1]), int(arr.shape[0]), f"{codec} image")
     if arr.ndim == 3 and arr.shape[2] == 1:
         arr = arr[:, :, 0]
     return arr
@@ -306,6 +413,9 @@ def is_decodable(payload: ImagePayload) -> tuple[bool, str]:
             _raw_geometry(payload)
         elif payload.kind == "compressed":
             codec = _check_compressed(payload)
+            dims = image_size(payload.data)
+            if dims is not None:
+                _check_pixels(dims[0], dims[1], f"{codec} image")
             if _sniff(payload.data) is None:
                 raise ImageDecodeError(
                     f"{codec} data is not a recognised image stream "

@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 from memlog.errors import LogReadError
+from memlog.io._damage import check_regular_file
 from memlog.io.base import LogReader
 
 __all__ = ["open_log", "sniff_format"]
@@ -24,6 +25,7 @@ def sniff_format(path: str | os.PathLike[str]) -> str:
         if (p / "metadata.yaml").is_file() or any(p.glob("*.db3")) or any(p.glob("*.mcap")):
             return "ros2bag"
         raise LogReadError(f"{p}: directory is not a ROS 2 bag (no metadata.yaml)")
+    check_regular_file(str(p))  # before open(): a named pipe would block forever
     try:
         with open(p, "rb") as fh:
             head = fh.read(16)

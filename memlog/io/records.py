@@ -59,8 +59,11 @@ class ReadReport:
     """What went wrong while reading, kept so a run can report it at the end.
 
     ``truncated`` is set when the log ended early (or a damaged region stopped the read);
-    ``bytes_read`` says how far the reader got; ``warnings`` are human-readable lines that
-    name the file, topic and message index.
+    ``bytes_read`` says how far the reader got; ``index_damaged`` when the log's index (MCAP
+    summary, bag index, ROS 2 metadata) is unreadable or disagrees with the data, which was
+    read instead; ``skipped_files`` counts storage files of a ROS 2 bag that could not be read
+    at all; ``warnings`` are human-readable lines that name the file, topic and message
+    index.
     """
 
     path: str
@@ -69,6 +72,8 @@ class ReadReport:
     skipped_chunks: int = 0
     bad_messages: int = 0
     undecodable_frames: int = 0
+    index_damaged: bool = False
+    skipped_files: int = 0
     warnings: list[str] = field(default_factory=list)
 
     def warn(self, text: str) -> None:
@@ -76,4 +81,5 @@ class ReadReport:
 
     @property
     def ok(self) -> bool:
-        return not (self.truncated or self.skipped_chunks or self.bad_messages or self.undecodable_frames)
+        return not (self.truncated or self.skipped_chunks or self.bad_messages or self.undecodable_frames
+                    or self.index_damaged or self.skipped_files)

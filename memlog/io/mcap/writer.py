@@ -57,7 +57,7 @@ class McapLogWriter:
         self._writer.start(profile=profile, library=library or f"memlog {__version__}")
         self._schemas: dict[tuple[str, str, bytes], int] = {}
         self._channels: dict[tuple[str, str, int, tuple[tuple[str, str], ...]], int] = {}
-        self._in_map: dict[tuple[str, int], int] = {}
+        self._in_map: dict[tuple[Any, ...], int] = {}
         self.messages_written = 0
         self._closed = False
 
@@ -80,8 +80,10 @@ class McapLogWriter:
         return cid
 
     def channel_for(self, channel: ChannelInfo, source: str = "") -> int:
-        """Output channel id of an input channel (registered with the same schema on first use)."""
-        key = (source, channel.id)
+        """Output channel id of an input channel (registered with the same schema on first use).
+        Keyed on the channel's content too: a reader that corrects a channel from the data (its
+        index said otherwise) hands out a new ChannelInfo with the same id."""
+        key = (source, channel.id, channel.topic, channel.message_encoding, channel.schema)
         cid = self._in_map.get(key)
         if cid is None:
             sid = 0

@@ -1,25 +1,248 @@
-"""ROS 2 bags (sqlite3 or mcap storage) through rosbags, streaming raw CDR bytes.
+"""ROS 2 bags (sqlite3 or mcap storage), streaming raw CDR bytes.
 
-A sqlite3 bag that rosbags cannot open is read row by row straight from the database
-(read-only, immutable) up to the damage.
+What the storage files hold is the truth; ``metadata.yaml`` is only checked against it. Every
+``.db3`` and ``.mcap`` file of the bag directory (and every file the metadata names) is opened on
+its own, so a damaged or foreign file costs only its own messages:
+
+* a ``.db3`` is read with sqlite (read-only, immutable): topics and message definitions from its
+  own tables; rows located by id one at a time, so a damaged page loses only the rows on it; a
+  cut file whose header claims more pages than it has is read from a private temporary copy with
+  the page count corrected; rows with a timestamp that is not a non-negative integer, an unknown
+  topic or data that is not a blob are reported and skipped; messages come in log-time order
+  (timestamp, then row id);
+* an ``.mcap`` file is read by :class:`memlog.io.mcap.McapLog` with all its damage handling;
+* ``NAME.zstd`` (file-compressed storage) is decompressed to a temporary file first.
+
+Files merge in log-time order. A metadata.yaml that is missing, does not parse or disagrees with
+the storage (files, topics, types, counts, compression) is reported as a damaged index.
 """
 
 from __future__ import annotations
 
+import heapq
 import os
+import shutil
 import sqlite3
+import struct
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from memlog.errors import LogReadError
-from memlog.io._rosbags import RosbagsLog, msgdef_text
-from memlog.io.records import ChannelInfo, RawMessage, SchemaInfo
+from memlog.io._damage import MAX_CHUNK_BYTES, check_regular_file
+from memlog.io.base import LogReader
+from memlog.io.records import ChannelInfo, RawMessage, ReadReport, SchemaInfo
+from memlog.io.types import LogInfo
 
 __all__ = ["Ros2BagLog"]
 
+_ZSTD = b"\x28\xb5\x2f\xfd"
+_PROBE = 256  # rows looked up one by one after a damaged page before jumping ahead
 
-class Ros2BagLog(RosbagsLog):
+
+class _FileBad(Exception):
+    """A storage file that cannot be read at all (the bag goes on without it)."""
+
+
+def _inflate(data: bytes) -> bytes:
+    """A zstd-compressed message (message-mode compression), bounded."""
+    import zstandard
+
+    with zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=True) as r:
+        out: bytes = r.read(MAX_CHUNK_BYTES + 1)
+    if len(out) > MAX_CHUNK_BYTES:
+        raise ValueError("message inflates to more than 2 GiB")
+    return out
+
+
+class _Db3:
+    """One sqlite3 storage file, read row by row."""
+
+    def __init__(self, path: Path, owner: LogReader) -> None:
+        self.path, self.owner = path, owner
+        self._tmp: IO[bytes] | None = None
+        self.con = self._connect(path)
+        try:
+            self.topics = self._topics()
+        except sqlite3.DatabaseError as exc:
+            self.con.close()
+            self.con = self._patched_copy(exc)
+            try:
+                self.topics = self._topics()
+            except sqlite3.DatabaseError as exc2:
+                self.close()
+                raise _FileBad(f"sqlite cannot read it ({exc2})") from None
+        self.msgdefs = self._msgdefs()
+        self._rows: tuple[Any, Any, Any] | None = None
+
+    @staticmethod
+    def _connect(path: Path) -> sqlite3.Connection:
+        try:
+            return sqlite3.connect(f"file:{path}?immutable=1", uri=True, check_same_thread=False)
+        except sqlite3.Error as exc:
+            raise _FileBad(f"sqlite cannot open it ({exc})") from None
+
+    def _patched_copy(self, why: Exception) -> sqlite3.Connection:
+        """A private copy whose header page count matches the file (a cut file's header claims
+        pages it lost, and sqlite then refuses every page)."""
+        with open(self.path, "rb") as fh:
+            head = fh.read(100)
+            if len(head) < 100 or not head.startswith(b"SQLite format 3\x00"):
+                raise _FileBad(f"not an sqlite3 database ({why})")
+            page = struct.unpack(">H", head[16:18])[0]
+            page = 65536 if page == 1 else page
+            size = os.fstat(fh.fileno()).st_size
+            pages = -(-size // page) if page else 0
+            if pages == struct.unpack(">I", head[28:32])[0]:
+                raise _FileBad(f"sqlite cannot read it ({why})")
+            fh.seek(0)
+            self._tmp = tempfile.NamedTemporaryFile(prefix="memlog-", suffix=".db3")
+            shutil.copyfileobj(fh, self._tmp)
+        self._tmp.seek(28)
+        self._tmp.write(struct.pack(">I", pages))
+        self._tmp.flush()
+        self.owner.warn(f"{self.path}: sqlite database is cut off ({size} bytes, its header claims more pages): "
+                        "reading the rows that are left")
+        self.owner.report.truncated = True
+        return self._connect(Path(self._tmp.name))
+
+    def _topics(self) -> dict[int, tuple[str, str, str, str]]:
+        cols = {r[1] for r in self.con.execute("PRAGMA table_info(topics)")}
+        qos = "offered_qos_profiles" if "offered_qos_profiles" in cols else "''"
+        out = {}
+        for tid, name, typ, ser, q in self.con.execute(f"SELECT id, name, type, serialization_format, {qos} FROM topics"):
+            if isinstance(tid, int) and isinstance(name, str) and isinstance(typ, str):
+                out[tid] = (name, typ, ser if isinstance(ser, str) and ser else "cdr", q if isinstance(q, str) else "")
+        return out
+
+    def _msgdefs(self) -> dict[str, tuple[str, str]]:
+        try:
+            rows = self.con.execute(
+                "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions").fetchall()
+        except sqlite3.DatabaseError:
+            return {}
+        return {t: (e, d) for t, e, d in rows if isinstance(t, str) and isinstance(d, str) and d.strip()}
+
+    def close(self) -> None:
+        self.con.close()
+        if self._tmp is not None:
+            self._tmp.close()
+            self._tmp = None
+
+    def _lookup(self, rid: int) -> tuple[Any, ...] | None:
+        try:
+            row: tuple[Any, ...] | None = self.con.execute(
+                "SELECT id, topic_id, timestamp FROM messages WHERE id = ?", (rid,)).fetchone()
+            return row
+        except sqlite3.DatabaseError:
+            return None
+
+    def rows(self) -> tuple[Any, Any, Any]:
+        """(row ids, topic ids, timestamps) of every readable, valid row, in (timestamp, id) order."""
+        import numpy as np
+
+        if self._rows is not None:
+            return self._rows
+        ids: list[int] = []
+        tids: list[int] = []
+        ts: list[int] = []
+        rep = self.owner.report
+        bad = 0
+        last = -(1 << 63)
+        damaged_at: int | None = None
+
+        def add(rid: Any, tid: Any, t: Any) -> None:
+            nonlocal bad
+            if type(t) is not int or t < 0 or tid not in self.topics:
+                bad += 1
+                if bad <= 5:
+                    why = (f"timestamp {t!r} is not a time" if type(t) is not int or t < 0
+                           else f"topic id {tid!r} is not in its topics table")
+                    self.owner.warn(f"{self.path}: message row {rid}: {why}; skipped")
+                return
+            ids.append(rid)
+            tids.append(tid)
+            ts.append(t)
+
+        while True:
+            try:
+                for rid, tid, t in self.con.execute(
+                        "SELECT id, topic_id, timestamp FROM messages WHERE id > ? ORDER BY id", (last,)):
+                    add(rid, tid, t)
+                    last = rid
+                break
+            except sqlite3.DatabaseError as exc:
+                if damaged_at is None:
+                    damaged_at = last
+                    rep.truncated = True
+                    self.owner.warn(f"{self.path}: database damaged after message row {last} ({exc}); "
+                                    "reading the rows that are left one by one")
+                nxt = self._probe(last)
+                if nxt is None:
+                    break
+                add(*nxt)
+                last = nxt[0]
+        if bad:
+            rep.bad_messages += bad
+            if bad > 5:
+                self.owner.warn(f"{self.path}: {bad} message rows in all had no valid timestamp or topic; skipped")
+        a_ids = np.asarray(ids, dtype=np.int64)
+        a_ts = np.asarray(ts, dtype=np.int64)
+        order = np.lexsort((a_ids, a_ts))
+        self._rows = (a_ids[order], np.asarray(tids, dtype=np.int64)[order], a_ts[order])
+        return self._rows
+
+    def _probe(self, last: int) -> tuple[Any, ...] | None:
+        """The next row after ``last`` that sqlite can read: ids one by one, then ever larger jumps."""
+        for rid in range(last + 1, last + 1 + _PROBE):
+            row = self._lookup(rid)
+            if row is not None:
+                return row
+        step = _PROBE
+        while last + step < (1 << 62):
+            step *= 2
+            row = self._lookup(last + step)
+            if row is not None:
+                return row
+        return None
+
+    def data(self, rid: int) -> bytes | str:
+        """The row's message bytes, or why they cannot be had."""
+        try:
+            row = self.con.execute("SELECT data FROM messages WHERE id = ?", (rid,)).fetchone()
+        except sqlite3.DatabaseError as exc:
+            return f"sqlite cannot read it ({exc})"
+        if row is None or not isinstance(row[0], bytes):
+            return "its data is not a blob"
+        data = row[0]
+        if data.startswith(_ZSTD):
+            try:
+                return _inflate(data)
+            except Exception as exc:  # noqa: BLE001 - zstd errors have no common base
+                return f"its zstd data does not decompress ({exc})"
+        return data
+
+
+def _read_metadata(d: Path) -> tuple[dict[str, Any] | None, str]:
+    p = d / "metadata.yaml"
+    if not p.exists():
+        return None, "metadata.yaml is missing"
+    try:
+        check_regular_file(str(p))
+        from ruamel.yaml import YAML
+
+        with open(p, encoding="utf-8") as fh:
+            doc = YAML(typ="safe", pure=True).load(fh)
+        info = doc["rosbag2_bagfile_information"]
+        if not isinstance(info, dict):
+            raise TypeError("rosbag2_bagfile_information is not a mapping")
+        return info, ""
+    except Exception as exc:  # noqa: BLE001 - yaml, unicode, key and type errors all mean: not usable
+        return None, f"metadata.yaml does not parse ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+
+
+class Ros2BagLog(LogReader):
     """A ROS 2 bag directory (sqlite3 or mcap storage). Messages keep their CDR bytes."""
 
     format = "ros2bag"
@@ -27,98 +250,296 @@ class Ros2BagLog(RosbagsLog):
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         super().__init__(path)
-        from rosbags.rosbag2 import Reader
-
-        self._reader: Any = None
+        d = Path(self.path)
+        self._dbs: list[_Db3] = []
+        self._mcaps: list[LogReader] = []
+        self._tmps: list[IO[bytes]] = []
         self._chans: dict[int, ChannelInfo] = {}
-        self._fallback: list[Path] = []
+        self._gid: dict[tuple[int, int], int] = {}  # (source, local id) -> channel id here
+        self._by_topic: dict[tuple[str, str], int] = {}
+        meta, why = _read_metadata(d)
+        files = self._storage_files(d, meta)
+        failed = []
         try:
-            self._reader = Reader(Path(self.path))
-            self._reader.open()
-            conns = self._reader.connections
-        except Exception as exc:
-            self._reader = None
-            dbs = sorted(Path(self.path).glob("*.db3"))
-            if not dbs:
-                raise LogReadError(f"{self.path}: ROS 2 bag does not open: {exc}") from exc
-            self.warn(f"{self.path}: bag does not open cleanly ({exc}); reading its sqlite3 rows up to the damage")
-            self._fallback = dbs
-            conns = self._fallback_connections()
-        for c in conns:
-            self._chans[c.id] = self._channel(c)
+            for f in files:
+                try:
+                    self._open_file(f)
+                except (_FileBad, LogReadError) as exc:
+                    self.report.skipped_files += 1
+                    msg = str(exc) if isinstance(exc, LogReadError) else f"{f}: {exc}"
+                    failed.append(msg)
+                    self.warn(f"{msg}; the bag goes on without this file")
+            if not self._dbs and not self._mcaps:
+                raise LogReadError(f"{d}: ROS 2 bag has no readable storage file"
+                                   + (f" ({'; '.join(failed)})" if failed else " (no .db3 or .mcap file)"))
+            self._check_metadata(meta, why, files)
+        except BaseException:
+            self.close()
+            raise
 
-    def _channel(self, c: Any) -> ChannelInfo:
-        text, fmt = msgdef_text(c)
-        enc = "ros2idl" if fmt == "idl" else "ros2msg"
-        if not text.strip():
-            from rosbags.typesys import Stores, get_typestore
+    # -- opening -------------------------------------------------------------------
+    @staticmethod
+    def _storage_files(d: Path, meta: dict[str, Any] | None) -> list[Path]:
+        names: list[str] = []
+        if meta is not None:
+            rel = meta.get("relative_file_paths")
+            if isinstance(rel, list):
+                names += [r for r in rel if isinstance(r, str) and r and "/" not in r and r not in (".", "..")]
+        for p in sorted(d.iterdir()):
+            if p.name.endswith((".db3", ".mcap", ".db3.zstd", ".mcap.zstd")) and p.name not in names:
+                names.append(p.name)
+        return [d / n for n in names]
 
+    def _open_file(self, f: Path) -> None:
+        if not f.exists():
+            raise _FileBad("named in metadata.yaml but missing")
+        check_regular_file(str(f))
+        name = f.name
+        if name.endswith(".zstd"):
+            f = self._unzstd(f)
+            name = name.removesuffix(".zstd")
+        kind = _sniff(f)
+        if kind == "sqlite":
+            self._add_db(_Db3(f, self))
+        elif kind == "mcap":
+            from memlog.io.mcap import McapLog
+
+            sub = McapLog(f)
+            self._adopt(sub.report)
+            sub.report = self.report
+            sub.on_warning = lambda text: self.on_warning(text)
+            self._add_mcap(sub)
+        else:
+            raise _FileBad(f"not {'an sqlite3 database' if name.endswith('.db3') else 'an MCAP file' if name.endswith('.mcap') else 'a storage file memlog reads (sqlite3 or MCAP)'}")
+
+    def _unzstd(self, f: Path) -> Path:
+        import zstandard
+
+        tmp = tempfile.NamedTemporaryFile(prefix="memlog-", suffix=f.name.removesuffix(".zstd")[-5:])
+        self._tmps.append(tmp)
+        try:
+            with open(f, "rb") as src:
+                zstandard.ZstdDecompressor().copy_stream(src, tmp)
+        except Exception as exc:  # noqa: BLE001 - zstd errors have no common base
+            raise _FileBad(f"does not decompress ({exc})") from None
+        tmp.flush()
+        return Path(tmp.name)
+
+    def _adopt(self, rep: ReadReport) -> None:
+        r = self.report
+        r.truncated |= rep.truncated
+        r.skipped_chunks += rep.skipped_chunks
+        r.bad_messages += rep.bad_messages
+        r.undecodable_frames += rep.undecodable_frames
+        r.index_damaged |= rep.index_damaged
+        r.warnings.extend(rep.warnings)
+
+    def _channel_id(self, src: int, local: int, topic: str, msgtype: str, make: Any) -> None:
+        key = (topic, msgtype)
+        gid = self._by_topic.get(key)
+        if gid is None:
+            gid = self._by_topic[key] = len(self._by_topic) + 1
+            self._chans[gid] = make(gid)
+        self._gid[(src, local)] = gid
+
+    def _add_db(self, db: _Db3) -> None:
+        src = len(self._dbs)
+        self._dbs.append(db)
+        for tid, (name, typ, ser, qos) in db.topics.items():
+            def make(gid: int, name: str = name, typ: str = typ, ser: str = ser, qos: str = qos) -> ChannelInfo:
+                enc, text = db.msgdefs.get(typ, ("", ""))
+                if not text.strip():
+                    text = _typestore_msgdef(typ)
+                    enc = "ros2msg"
+                meta = {"offered_qos_profiles": qos} if qos else {}
+                return ChannelInfo(gid, name, ser, SchemaInfo(typ, "ros2idl" if enc == "ros2idl" else "ros2msg",
+                                                               text.encode()), meta)
+
+            self._channel_id(src, tid, name, typ, make)
+
+    def _add_mcap(self, sub: LogReader) -> None:
+        src = -1 - len(self._mcaps)
+        self._mcaps.append(sub)
+        for ch in sub.channels():
+            self._channel_id(src, ch.id, ch.topic, ch.msgtype,
+                             lambda gid, ch=ch: ChannelInfo(gid, ch.topic, ch.message_encoding, ch.schema, ch.metadata))
+
+    def _check_metadata(self, meta: dict[str, Any] | None, why: str, files: list[Path]) -> None:
+        """Compare metadata.yaml with what the storage holds; a difference is a damaged index."""
+        if meta is None:
+            self.report.index_damaged = True
+            self.warn(f"{self.path}: {why}: reading what the storage files hold")
+            return
+        problems = []
+        rel = meta.get("relative_file_paths")
+        named = {r for r in rel if isinstance(r, str)} if isinstance(rel, list) else set()
+        found = {f.name for f in files}
+        if named != found:
+            problems.append(f"it names the files {sorted(named)}, the bag holds {sorted(found)}")
+        claimed: dict[tuple[str, str], int] = {}
+        for t in meta.get("topics_with_message_count") or []:
             try:
-                text, _ = get_typestore(Stores.ROS2_HUMBLE).generate_msgdef(c.msgtype, ros_version=2)
-            except Exception:
-                text = ""
-        meta: dict[str, str] = {}
-        ext = getattr(c, "ext", None)
-        qos = getattr(ext, "offered_qos_profiles", None)
-        if isinstance(qos, str) and qos:
-            meta["offered_qos_profiles"] = qos
-        ser = getattr(ext, "serialization_format", "cdr") or "cdr"
-        return ChannelInfo(c.id, c.topic, ser, SchemaInfo(c.msgtype, enc, text.encode()), meta)
+                tm = t["topic_metadata"]
+                claimed[(str(tm["name"]), str(tm["type"]))] = int(t["message_count"])
+            except (KeyError, TypeError, ValueError):
+                problems.append("a topic entry is malformed")
+        counts = self.message_counts()
+        have = {k: (counts or {}).get(g, 0) for k, g in self._by_topic.items()}
+        if set(claimed) != set(have):
+            problems.append(f"it lists the topics {sorted(claimed)}, the storage holds {sorted(have)}")
+        elif counts is not None and claimed != have:
+            problems.append("its message counts differ from the storage's "
+                            + ", ".join(f"{k[0]} {claimed[k]} vs {have[k]}" for k in claimed if claimed[k] != have[k]))
+        kinds = {"sqlite3"} if self._dbs else set()
+        kinds |= {"mcap"} if self._mcaps else set()
+        storage = str(meta.get("storage_identifier") or "")
+        if storage not in kinds or len(kinds) > 1:
+            problems.append(f"its storage is {storage!r}, the files are {' and '.join(sorted(kinds))}")
+        mode = str(meta.get("compression_mode") or "").lower()
+        fmt = str(meta.get("compression_format") or "").lower()
+        zipped = any(f.name.endswith(".zstd") for f in files)
+        if (mode == "file") != zipped or (mode not in ("", "none", "file", "message")) or (
+                mode in ("file", "message") and fmt != "zstd"):
+            problems.append(f"its compression ({mode or 'none'} {fmt}) does not match the files")
+        if problems:
+            self.report.index_damaged = True
+            self.warn(f"{self.path}: metadata.yaml does not match the storage files ({'; '.join(problems)}); "
+                      "reading what the storage files hold")
 
-    def _fallback_connections(self) -> list[Any]:
-        from types import SimpleNamespace
+    def close(self) -> None:
+        for db in self._dbs:
+            db.close()
+        for sub in self._mcaps:
+            sub.close()
+        for tmp in self._tmps:
+            tmp.close()
+        self._dbs, self._mcaps, self._tmps = [], [], []
 
-        out: list[Any] = []
-        for db in self._fallback:
-            con = sqlite3.connect(f"file:{db}?immutable=1", uri=True)
-            try:
-                for tid, name, typ, ser in con.execute("SELECT id, name, type, serialization_format FROM topics"):
-                    if not any(o.topic == name for o in out):
-                        out.append(SimpleNamespace(id=tid, topic=name, msgtype=typ, msgdef=None,
-                                                   ext=SimpleNamespace(serialization_format=ser)))
-            except sqlite3.DatabaseError as exc:
-                raise LogReadError(
-                    f"{db}: sqlite3 database is damaged ({exc}); sqlite cannot read any of it "
-                    "(a bag cut off mid-file loses its page index)"
-                ) from exc
-            finally:
-                con.close()
+    # -- listing -------------------------------------------------------------------
+    def channels(self) -> list[ChannelInfo]:
+        return list(self._chans.values())
+
+    def message_counts(self) -> dict[int, int] | None:
+        import numpy as np
+
+        out: dict[int, int] = {}
+        for src, db in enumerate(self._dbs):
+            _, tids, _ = db.rows()
+            for tid, n in zip(*np.unique(tids, return_counts=True)):
+                gid = self._gid[(src, int(tid))]
+                out[gid] = out.get(gid, 0) + int(n)
+        for i, sub in enumerate(self._mcaps):
+            counts = sub.message_counts()
+            if counts is None:
+                return None
+            for cid, n in counts.items():
+                g = self._gid.get((-1 - i, cid))
+                if g is not None:
+                    out[g] = out.get(g, 0) + n
         return out
 
+    def checksums(self) -> str:
+        kinds = {"none"} if self._dbs else set()
+        kinds |= {sub.checksums() for sub in self._mcaps}
+        if kinds == {"all"}:
+            return "all"
+        if "unknown" in kinds:
+            return "unknown"
+        return "some" if kinds & {"all", "some"} else "none"
+
+    def topic_times(self, topic: str) -> Any:
+        import numpy as np
+
+        parts = []
+        for src, db in enumerate(self._dbs):
+            _, tids, ts = db.rows()
+            wanted = [tid for tid, (name, _t, _s, _q) in db.topics.items() if name == topic]
+            parts.append(ts[np.isin(tids, wanted)])
+        for sub in self._mcaps:
+            if topic in sub.topics():
+                t = sub.topic_times(topic)
+                if t is None:
+                    return None
+                parts.append(np.asarray(t, dtype=np.int64))
+        return np.sort(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+
+    def _fill_time_range(self, info: LogInfo) -> None:
+        lo, hi = [], []
+        for db in self._dbs:
+            _, _, ts = db.rows()
+            if len(ts):
+                lo.append(int(ts[0]))
+                hi.append(int(ts[-1]))
+        for sub in self._mcaps:
+            part = LogInfo(sub.path, sub.format, 0)
+            sub._fill_time_range(part)
+            if part.start_ns is not None and part.end_ns is not None:
+                lo.append(part.start_ns)
+                hi.append(part.end_ns)
+        if lo:
+            info.start_ns, info.end_ns = min(lo), max(hi)
+        info.storage = "+".join((["sqlite3"] if self._dbs else []) + (["mcap"] if self._mcaps else []))
+
+    # -- messages ------------------------------------------------------------------
     def _iter_messages(
         self, topics: set[str] | None, start_ns: int | None, end_ns: int | None, log_time_order: bool
     ) -> Iterator[RawMessage]:
-        if self._reader is None:
-            yield from self._fallback_messages(topics, start_ns, end_ns)
+        its = [self._db_messages(i, topics, start_ns, end_ns) for i in range(len(self._dbs))]
+        its += [self._mcap_messages(i, topics, start_ns, end_ns, log_time_order) for i in range(len(self._mcaps))]
+        if len(its) == 1:
+            yield from its[0]
         else:
-            yield from self._rosbags_messages(topics, start_ns, end_ns)
+            yield from heapq.merge(*its, key=lambda m: m.log_time)
 
-    def _fallback_messages(
-        self, topics: set[str] | None, start_ns: int | None, end_ns: int | None
-    ) -> Iterator[RawMessage]:
-        by_topic = {c.topic: c for c in self._chans.values()}
-        for db in self._fallback:
-            con = sqlite3.connect(f"file:{db}?immutable=1", uri=True)
-            names = {tid: name for tid, name in con.execute("SELECT id, name FROM topics")}
-            last = -1
-            try:
-                while True:  # rowid pages, so a damaged page stops only the rest
-                    rows = con.execute(
-                        "SELECT id, topic_id, timestamp, data FROM messages WHERE id > ? ORDER BY id LIMIT 256",
-                        (last,),
-                    ).fetchall()
-                    if not rows:
-                        break
-                    for rid, tid, ts, data in rows:
-                        last = rid
-                        name = names.get(tid)
-                        if name is None or (topics is not None and name not in topics):
-                            continue
-                        if (start_ns is not None and ts < start_ns) or (end_ns is not None and ts >= end_ns):
-                            continue
-                        yield RawMessage(by_topic[name], ts, ts, 0, bytes(data))
-            except sqlite3.DatabaseError as exc:
-                self.report.truncated = True
-                self.warn(f"{db}: database damaged after message row {last} ({exc}); read everything before it")
-            finally:
-                con.close()
+    def _db_messages(self, src: int, topics: set[str] | None, start_ns: int | None,
+                     end_ns: int | None) -> Iterator[RawMessage]:
+        import numpy as np
+
+        db = self._dbs[src]
+        ids, tids, ts = db.rows()
+        keep = np.ones(len(ids), dtype=bool)
+        if topics is not None:
+            keep &= np.isin(tids, [t for t, v in db.topics.items() if v[0] in topics])
+        if start_ns is not None:
+            keep &= ts >= start_ns
+        if end_ns is not None:
+            keep &= ts < end_ns
+        for rid, tid, t in zip(ids[keep].tolist(), tids[keep].tolist(), ts[keep].tolist()):
+            data = db.data(rid)
+            if isinstance(data, str):
+                self.report.bad_messages += 1
+                self.warn(f"{db.path}: message row {rid} (log time {t}): {data}; skipped")
+                continue
+            yield RawMessage(self._chans[self._gid[(src, tid)]], t, t, 0, data)
+
+    def _mcap_messages(self, i: int, topics: set[str] | None, start_ns: int | None, end_ns: int | None,
+                       log_time_order: bool) -> Iterator[RawMessage]:
+        sub = self._mcaps[i]
+        for m in sub._iter_messages(topics, start_ns, end_ns, log_time_order):
+            gid = self._gid.get((-1 - i, m.channel.id))
+            if gid is None:  # a channel the file defined only inside its data
+                self._channel_id(-1 - i, m.channel.id, m.channel.topic, m.channel.msgtype,
+                                 lambda g, ch=m.channel: ChannelInfo(g, ch.topic, ch.message_encoding, ch.schema,
+                                                                     ch.metadata))
+                gid = self._gid[(-1 - i, m.channel.id)]
+            yield RawMessage(self._chans[gid], m.log_time, m.publish_time, m.sequence, m.data)
+
+
+def _sniff(f: Path) -> str:
+    with open(f, "rb") as fh:
+        head = fh.read(16)
+    if head.startswith(b"SQLite format 3\x00"):
+        return "sqlite"
+    if head.startswith(b"\x89MCAP0\r\n"):
+        return "mcap"
+    return ""
+
+
+def _typestore_msgdef(msgtype: str) -> str:
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        text, _ = get_typestore(Stores.ROS2_HUMBLE).generate_msgdef(msgtype, ros_version=2)
+    except Exception:  # noqa: BLE001 - an unknown type simply has no definition to offer
+        return ""
+    return str(text)
