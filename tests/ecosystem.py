@@ -113,7 +113,7 @@ def record_of_scores(msg: dict[str, Any], encoding: str) -> dict[str, Any]:
     values = [None if math.isnan(v) else v for v in r.pop("memorability")]
     rows = r.pop("memorability_rows")
     if r.pop("has_memorability"):
-        cols = len(values) // rows
+        cols = len(values) // rows if rows else 0
         r["memorability"] = [values[i * cols:(i + 1) * cols] for i in range(rows)]
     else:
         assert rows == 0 and values == []

@@ -311,6 +311,11 @@ def test_match_messages_agree_with_the_match_table(name: str, out_dir: Path) -> 
 
 # -- the record <-> message conventions, every family --------------------------------------------------
 
+RECORD_EMPTY_MATRIX = {  # not written by memlog (the matrix is 5x5 or null), but an empty one must survive too
+    "timestamp": {"sec": 5, "nsec": 6}, "log_time": 11, "topic": "/c", "frame_index": 2, "ms": 0.5, "ms_low": 0.5,
+    "ms_high": 0.5, "ms_exact": True, "ss": 0.5, "es": 0.5, "memorability": [], "crops_scored": 0,
+    "crops_surrogate": 0, "selected": True, "rejected_by": None, "thresholds": {"mt": 0.5, "st": 0.5, "et": 0.5},
+    "detections": 0, "timing_ms": {}, "error": None}
 RECORDS = [
     {"timestamp": {"sec": 12, "nsec": 999_999_999}, "log_time": 2**62 + 5, "topic": "/cam/ä", "frame_index": 7,
      "ms": 0.612345, "ms_low": 0.5, "ms_high": 0.75, "ms_exact": False, "ss": 1.0, "es": 0.0,
@@ -325,6 +330,7 @@ RECORDS = [
      "ms_high": None, "ms_exact": True, "ss": 0.125, "es": None, "memorability": None, "crops_scored": 0,
      "crops_surrogate": 0, "selected": False, "rejected_by": "staticity", "thresholds": {"mt": 0.5, "st": 0.6, "et": 0.4},
      "detections": 4, "timing_ms": {"staticity": 2.0}, "error": None},
+    {**RECORD_EMPTY_MATRIX},
 ]
 MATCHES = [
     {"timestamp": {"sec": 1, "nsec": 2}, "frame_index": 3, "confidence": 0.875,

@@ -87,6 +87,7 @@ def canonical_scores(rec: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def canonical_match(rec: Mapping[str, Any]) -> dict[str, Any]:
+    """A match record with exactly the fields of ``memlog.Match``."""
     return {"timestamp": rec["timestamp"], "frame_index": rec["frame_index"],
             "matches": [{"topic": m["topic"], "frame_index": m["frame_index"], "similarity": m["similarity"]}
                         for m in rec["matches"]],
@@ -111,25 +112,17 @@ def _scores_from_flat(flat: Mapping[str, Any]) -> dict[str, Any]:
     values = [None if math.isnan(v) else v for v in r.pop("memorability")]
     n = r.pop("memorability_rows")
     has = r.pop("has_memorability")
-    if has and (n <= 0 or len(values) % n):
+    if has and (len(values) % n if n else values):
         raise ValueError(f"memorability: {len(values)} values do not make {n} rows")
-    cols = len(values) // n if has else 0
+    cols = len(values) // n if n else 0
     r["memorability"] = [values[i * cols:(i + 1) * cols] for i in range(n)] if has else None
     r["timing_ms"] = {t["stage"]: t["ms"] for t in r["timing_ms"]}
     return canonical_scores(r)
 
 
-def _match_to_flat(rec: Mapping[str, Any]) -> dict[str, Any]:
-    return canonical_match(rec)
-
-
-def _match_from_flat(flat: Mapping[str, Any]) -> dict[str, Any]:
-    return canonical_match(flat)
-
-
 _FLAT: dict[str, tuple[Callable[[Mapping[str, Any]], dict[str, Any]], Callable[[Mapping[str, Any]], dict[str, Any]]]] = {
     SCORES: (_scores_to_flat, _scores_from_flat),
-    MATCH: (_match_to_flat, _match_from_flat),
+    MATCH: (canonical_match, canonical_match),
 }
 
 
