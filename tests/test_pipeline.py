@@ -17,6 +17,7 @@ from memlog.io import FrameWindow, open_log
 from memlog.io.positions import read_track
 from memlog.outputs.annotated import read_scores
 from memlog.outputs.descriptor_table import read_descriptors
+from memlog.outputs.channels import MATCH, decode_record
 from memlog.outputs.schemas import SCHEMAS
 from memlog.scoring.config import ScoreConfig, load_config
 from memlog.selection.config import SelectionConfig
@@ -54,7 +55,7 @@ def test_map_with_fixed_thresholds(all_scored: Path, tmp_path: Path) -> None:
     assert res.frames_kept == len(want) and res.frames_in == len(recs)
     with open_log(DEMO) as src, open_log(out) as m:
         kept = list(m.frames([COMP]))
-        assert [json.loads(x.data)["frame_index"] for x in m.messages([f"{COMP}/memlog/scores"])] == want
+        assert [r["frame_index"] for r in read_scores(out)[COMP]] == want
         src_frames = {f.index: f for f in src.frames([COMP])}
         assert [f.payload.data for f in kept] == [src_frames[i].payload.data for i in want]  # byte for byte
         assert sum(1 for _ in m.messages(["/gps/fix"])) == 8  # kept whole
@@ -124,7 +125,7 @@ def test_localize_finds_the_same_place(all_scored: Path, tmp_path: Path) -> None
     assert loc.n_queries == 8 and loc.n_map == 8
     validator = jsonschema.Draft202012Validator(SCHEMAS["memlog.Match"])
     with open_log(tmp_path / "q.mcap") as q:
-        msgs = [json.loads(m.data) for m in q.messages([f"{RAW}/memlog/match"])]
+        msgs = [decode_record(MATCH, m.channel, m.data) for m in q.messages([f"{RAW}/memlog/match"])]
     assert len(msgs) == 8
     for m in msgs:
         validator.validate(m)

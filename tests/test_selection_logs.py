@@ -4,7 +4,6 @@ reuses a scoring run the same way), so these tests exercise selection and map wr
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +12,7 @@ import pytest
 from memlog.errors import ConfigError, MemlogError
 from memlog.io import McapLogWriter, open_log
 from memlog.io.positions import read_track
+from memlog.outputs.annotated import read_scores
 from memlog.selection.config import SelectionConfig
 from memlog.steps.map import MapConfig, make_map
 from tests.conftest import FIXTURES
@@ -33,8 +33,7 @@ def _records(path: Path, topic: str, ms: list[float], ss: list[float] | None = N
 
 
 def _kept(path: Path, topic: str) -> list[int]:
-    with open_log(path) as m:
-        return [json.loads(x.data)["frame_index"] for x in m.messages([f"{topic}/memlog/scores"])]
+    return [r["frame_index"] for r in read_scores(path).get(topic, [])]
 
 
 def test_segments_by_distance_keep_one_frame_per_stretch(tmp_path: Path) -> None:

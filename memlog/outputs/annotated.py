@@ -2,20 +2,21 @@
 
 For each scored camera topic ``T``:
 
-* ``T/memlog/scores`` (json, schema ``memlog.FrameScores``): MS, SS, ES, the 5x5 matrix,
-  the decision, the rejecting criterion, per-stage timing;
-* ``T/memlog/annotations`` (``foxglove.ImageAnnotations``): dynamic-object boxes with class
-  and confidence, and the three scores as text, drawn by Foxglove over the image;
-* with ``maps``: ``T/memlog/maps/{memorability,staticity,entropy}`` as
-  ``foxglove.CompressedImage`` PNGs;
+* ``T/memlog/scores`` (``memlog.FrameScores``): MS, SS, ES, the 5x5 matrix, the decision, the
+  rejecting criterion, per-stage timing;
+* ``T/memlog/annotations`` (``foxglove.ImageAnnotations``, Foxglove's official definition):
+  dynamic-object boxes with class and confidence, and the three scores as text, drawn by Foxglove
+  over the image;
+* with ``maps``: ``T/memlog/maps/{memorability,staticity,entropy}`` as PNG ``CompressedImage``;
 
-and metadata ``memlog_run`` (version, config, model hashes) and ``memlog_summary``.
-:func:`read_scores` and :func:`run_config` read them back, so later steps reuse a scoring run.
+all in the input's encoding family (:mod:`memlog.outputs.channels`: ROS 2 CDR, ROS 1, Foxglove
+JSON or protobuf), and metadata ``memlog_run`` (version, config, model hashes) and
+``memlog_summary``. :func:`read_scores` and :func:`run_config` read them back from any family, so
+later steps reuse a scoring run.
 """
 
 from __future__ import annotations
 
-import base64
 import json
 import os
 from collections.abc import Callable, Iterator, Mapping
@@ -31,8 +32,9 @@ from memlog.io.base import LogReader
 from memlog.io.frame import Frame
 from memlog.io.mcap import CopyStats, McapLogWriter, copy_log
 from memlog.io.open import open_log
-from memlog.io.records import RawMessage
-from memlog.outputs.schemas import schema_bytes
+from memlog.io.records import RawMessage, ReadReport
+from memlog.outputs.channels import (ANNOTATIONS, IMAGE, SCORES, MemlogChannels, RecordDecodeError, canonical_scores,
+                                     decode_record, family_of)
 from memlog.scoring.config import ScoreConfig, config_from_json
 from memlog.scoring.scorer import STAGES, FrameScore
 
@@ -76,10 +78,12 @@ def annotations_message(frame: Frame, s: FrameScore, config: ScoreConfig) -> dic
         points.append({
             "timestamp": ts, "type": 2, "points": [{"x": x0, "y": y0}, {"x": x1, "y": y0}, {"x": x1, "y": y1}, {"x": x0, "y": y1}],
             "outline_color": col, "outline_colors": [], "fill_color": _color(0, 0, 0, 0), "thickness": 2.0,
+            "metadata": [],
         })
         texts.append({
             "timestamp": ts, "position": {"x": x0 + 2, "y": y0 + 2}, "text": f"{d.class_name} {d.confidence:.2f}",
             "font_size": max(10.0, h / 30), "text_color": col, "background_color": _color(0, 0, 0, 0.5),
+            "metadata": [],
         })
     f = fmt3
     verdict = "KEEP" if s.selected else f"drop ({s.rejected_by})"
@@ -88,22 +92,23 @@ def annotations_message(frame: Frame, s: FrameScore, config: ScoreConfig) -> dic
         "timestamp": ts, "position": {"x": 4.0, "y": 4.0},
         "text": f"MS {bound}{f(s.ms)}  SS {f(s.ss)}  ES {f(s.es)}  {verdict}",
         "font_size": max(10.0, h / 24), "text_color": _color(0.2, 1.0, 0.2) if s.selected else _color(1.0, 0.6, 0.2),
-        "background_color": _color(0, 0, 0, 0.6),
+        "background_color": _color(0, 0, 0, 0.6), "metadata": [],
     })
-    return {"circles": [], "points": points, "texts": texts}
+    return {"timestamp": ts, "circles": [], "points": points, "texts": texts, "metadata": []}
 
 
 def scores_message(frame: Frame, s: FrameScore | None, config: ScoreConfig, error: str | None = None) -> dict[str, Any]:
+    """The score record of ``frame`` (``memlog.FrameScores``; every field, null where not computed)."""
     base = {
         "timestamp": _stamp(frame.stamp_ns), "log_time": frame.log_time_ns, "topic": frame.topic,
         "frame_index": frame.index, "thresholds": {"mt": config.mt, "st": config.st, "et": config.et},
     }
     if s is None:
-        return {**base, "ms": None, "ss": None, "es": None, "selected": False, "rejected_by": "undecodable",
-                "memorability": None, "ms_exact": True, "crops_scored": 0, "crops_surrogate": 0, "detections": 0,
-                "timing_ms": {},
-                "error": error}
-    return {**base, **s.to_json(), "error": None}
+        return canonical_scores({**base, "ms": None, "ms_low": None, "ms_high": None, "ss": None, "es": None,
+                                 "selected": False, "rejected_by": "undecodable", "memorability": None,
+                                 "ms_exact": True, "crops_scored": 0, "crops_surrogate": 0, "detections": 0,
+                                 "timing_ms": {}, "error": error or "frame does not decode"})
+    return canonical_scores({**base, **s.to_json(), "error": None})
 
 
 def _map_png(m: np.ndarray, scale: float, w: int, h: int) -> bytes:
@@ -123,20 +128,15 @@ class AnnotatedLogWriter:
         self.w = McapLogWriter(path, profile=reader.profile)
         for ch in reader.channels():
             self.w.channel_for(ch)
+        self.family = family_of(reader, topics)
+        self.out = MemlogChannels(self.w, self.family)
         self._chans: dict[str, dict[str, int]] = {}
         for t in topics:
-            chans = {
-                "scores": self.w.add_channel(f"{t}{SCORES_SUFFIX}", "json",
-                                             self.w.add_schema("memlog.FrameScores", "jsonschema",
-                                                               schema_bytes("memlog.FrameScores"))),
-                "annotations": self.w.add_channel(f"{t}/memlog/annotations", "json",
-                                                  self.w.add_schema("foxglove.ImageAnnotations", "jsonschema",
-                                                                    schema_bytes("foxglove.ImageAnnotations"))),
-            }
+            chans = {"scores": self.out.add(f"{t}{SCORES_SUFFIX}", SCORES),
+                     "annotations": self.out.add(f"{t}/memlog/annotations", ANNOTATIONS)}
             if config.maps:
-                sid = self.w.add_schema("foxglove.CompressedImage", "jsonschema", schema_bytes("foxglove.CompressedImage"))
                 for k in STAGES:
-                    chans[f"map_{k}"] = self.w.add_channel(f"{t}/memlog/maps/{k}", "json", sid)
+                    chans[f"map_{k}"] = self.out.add(f"{t}/memlog/maps/{k}", IMAGE)
             self._chans[t] = chans
 
     @property
@@ -150,15 +150,15 @@ class AnnotatedLogWriter:
     def write(self, frame: Frame, s: FrameScore | None, error: str | None = None) -> None:
         """The score message of ``frame`` (and, when scored, its annotations and maps)."""
         chans = self._chans[frame.topic]
-        self.w.write_json(chans["scores"], frame.log_time_ns, scores_message(frame, s, self.config, error))
+        self.out.write(chans["scores"], frame.log_time_ns, scores_message(frame, s, self.config, error))
         if s is None:
             return
-        self.w.write_json(chans["annotations"], frame.log_time_ns, annotations_message(frame, s, self.config))
+        self.out.write(chans["annotations"], frame.log_time_ns, annotations_message(frame, s, self.config))
         if self.config.maps:
             for k, m in s.maps.items():
-                msg = {"timestamp": _stamp(frame.stamp_ns), "frame_id": frame.frame_id, "format": "png",
-                       "data": base64.b64encode(_map_png(m, _MAP_SCALE[k], s.width, s.height)).decode()}
-                self.w.write_json(chans[f"map_{k}"], frame.log_time_ns, msg)
+                self.out.write(chans[f"map_{k}"], frame.log_time_ns, {
+                    "timestamp": _stamp(frame.stamp_ns), "frame_id": frame.frame_id, "format": "png",
+                    "data": _map_png(m, _MAP_SCALE[k], s.width, s.height), "seq": frame.index})
 
     def close(self, run: Mapping[str, str], summary: Mapping[str, str]) -> Path:
         """Add ``memlog_run`` and ``memlog_summary`` metadata and move the file into place."""
@@ -177,17 +177,34 @@ class AnnotatedLogWriter:
             self.abort()
 
 
-def read_scores(path: str | os.PathLike[str]) -> dict[str, list[dict[str, Any]]]:
-    """Score records of an annotated MCAP, per camera topic, in frame-index order.
+def read_scores(path: str | os.PathLike[str], *, report: ReadReport | None = None) -> dict[str, list[dict[str, Any]]]:
+    """Score records of an annotated MCAP or map log, per camera topic, in frame-index order.
 
-    Lets later steps (map, evaluate) reuse a scoring run instead of scoring again.
+    Reads every encoding memlog writes (JSON, ROS 2 CDR, ROS 1, protobuf) into the same records
+    (the JSON form, :func:`~memlog.outputs.channels.canonical_scores`), so later steps (map,
+    evaluate) reuse a scoring run instead of scoring again. A score message that does not decode is
+    reported (file, topic, message index) and skipped; ``report`` (when given) receives the file's
+    read report, so the caller can count the damage.
     """
     out: dict[str, list[dict[str, Any]]] = {}
     with open_log(path) as reader:
         topics = [c.topic for c in reader.channels() if c.topic.endswith(SCORES_SUFFIX)]
+        seen: dict[str, int] = {}
         for m in reader.messages(topics):
-            rec = json.loads(m.data)
+            i = seen[m.channel.topic] = seen.get(m.channel.topic, -1) + 1
+            try:
+                rec = decode_record(SCORES, m.channel, m.data)
+            except RecordDecodeError as exc:
+                reader.report.bad_messages += 1
+                reader.warn(f"{reader.path}: topic {m.channel.topic}, message {i}: score record does not decode "
+                            f"({exc}); skipped")
+                continue
             out.setdefault(m.channel.topic.removesuffix(SCORES_SUFFIX), []).append(rec)
+        if report is not None:
+            report.truncated = report.truncated or reader.report.truncated
+            report.bad_messages += reader.report.bad_messages
+            report.skipped_chunks += reader.report.skipped_chunks
+            report.warnings.extend(reader.report.warnings)
     for recs in out.values():
         recs.sort(key=lambda r: r["frame_index"])
     return out

@@ -1,15 +1,15 @@
 """The memorable-map log of ``memlog map``: the kept frames only, compressed, in the input's profile.
 
 Compressed frames are copied byte for byte; raw frames are encoded to JPEG/PNG and written as
-``CompressedImage`` on ``T/compressed`` in the input's encoding family (ROS 2 CDR, ROS 1, or
-Foxglove JSON). Each kept frame's score record goes to ``T/memlog/scores``; topics the user
-keeps whole (GPS, odometry) are copied; metadata ``memlog_map`` records the run.
+``CompressedImage`` on ``T/compressed``. Each kept frame's score record goes to ``T/memlog/scores``
+(``memlog.FrameScores``). Both are in the input's encoding family (:mod:`memlog.outputs.channels`:
+``sensor_msgs/CompressedImage`` + ``memlog_msgs/FrameScores`` in ROS 2 CDR or ROS 1, Foxglove JSON
+or protobuf). Topics the user keeps whole (GPS, odometry) are copied; metadata ``memlog_map``
+records the run.
 """
 
 from __future__ import annotations
 
-import base64
-import json
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -25,7 +25,7 @@ from memlog.io.frame import Frame
 from memlog.io.mcap import McapLogWriter
 from memlog.io.records import RawMessage
 from memlog.outputs.annotated import SCORES_SUFFIX
-from memlog.outputs.schemas import schema_bytes
+from memlog.outputs.channels import IMAGE, SCORES, MemlogChannels
 
 __all__ = ["MapLogWriter", "encode_image"]
 
@@ -37,49 +37,7 @@ def encode_image(img: npt.NDArray[np.uint8], fmt: str, quality: int) -> bytes:
     return bytes(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])[1])
 
 
-class _CompressedOut:
-    """Writes raw frames as CompressedImage in the input's profile (ros2 cdr, ros1, or foxglove json)."""
-
-    def __init__(self, w: McapLogWriter, profile: str) -> None:
-        self.w, self.profile = w, profile
-        self._store: Any = None
-        self._chans: dict[str, int] = {}
-
-    def channel(self, topic: str) -> int:
-        if topic in self._chans:
-            return self._chans[topic]
-        if self.profile in ("ros1", "ros2"):
-            from rosbags.typesys import Stores, get_typestore
-
-            ver = 1 if self.profile == "ros1" else 2
-            self._store = get_typestore(Stores.ROS1_NOETIC if ver == 1 else Stores.ROS2_HUMBLE)
-            text, md5 = self._store.generate_msgdef("sensor_msgs/msg/CompressedImage", ros_version=ver)
-            name = "sensor_msgs/CompressedImage" if ver == 1 else "sensor_msgs/msg/CompressedImage"
-            sid = self.w.add_schema(name, "ros1msg" if ver == 1 else "ros2msg", text.encode())
-            cid = self.w.add_channel(topic, "ros1" if ver == 1 else "cdr", sid, {"md5sum": md5} if ver == 1 else {})
-        else:
-            sid = self.w.add_schema("foxglove.CompressedImage", "jsonschema", schema_bytes("foxglove.CompressedImage"))
-            cid = self.w.add_channel(topic, "json", sid)
-        self._chans[topic] = cid
-        return cid
-
-    def write(self, topic: str, frame: Frame, data: bytes, fmt: str) -> None:
-        cid = self.channel(topic)
-        sec, nsec = divmod(frame.stamp_ns, 1_000_000_000)
-        if self.profile in ("ros1", "ros2"):
-            T = self._store.types
-            stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
-            hdr_kw: dict[str, Any] = {"stamp": stamp, "frame_id": frame.frame_id}
-            if self.profile == "ros1":
-                hdr_kw["seq"] = frame.index
-            msg = T["sensor_msgs/msg/CompressedImage"](
-                header=T["std_msgs/msg/Header"](**hdr_kw), format=fmt, data=np.frombuffer(data, np.uint8))
-            ser = self._store.serialize_ros1 if self.profile == "ros1" else self._store.serialize_cdr
-            payload = bytes(ser(msg, "sensor_msgs/msg/CompressedImage"))
-        else:
-            payload = json.dumps({"timestamp": {"sec": sec, "nsec": nsec}, "frame_id": frame.frame_id,
-                                  "format": fmt, "data": base64.b64encode(data).decode()}).encode()
-        self.w.write(cid, frame.log_time_ns, payload)
+_PROFILE_FAMILY = {"ros1": "ros1", "ros2": "ros2"}
 
 
 class MapLogWriter:
@@ -88,13 +46,17 @@ class MapLogWriter:
     ``memlog_map`` metadata (atomic; :meth:`abort` drops the file)."""
 
     def __init__(self, path: str | os.PathLike[str], profile: str, topics: list[str], *,
-                 image_format: str = "jpeg", jpeg_quality: int = 90) -> None:
+                 image_format: str = "jpeg", jpeg_quality: int = 90, family: str | None = None) -> None:
+        """``family``: the encoding family of memlog's channels
+        (:func:`~memlog.outputs.channels.family_of` the input; default: from ``profile``, JSON
+        outside ros1/ros2)."""
         self.w = McapLogWriter(path, profile=profile)
         self.image_format = image_format
         self.jpeg_quality = jpeg_quality
-        self._comp = _CompressedOut(self.w, profile)
-        sid = self.w.add_schema("memlog.FrameScores", "jsonschema", schema_bytes("memlog.FrameScores"))
-        self._score_ch = {t: self.w.add_channel(f"{t}{SCORES_SUFFIX}", "json", sid) for t in topics}
+        self.family = family or _PROFILE_FAMILY.get(profile, "json")
+        self.out = MemlogChannels(self.w, self.family)
+        self._score_ch = {t: self.out.add(f"{t}{SCORES_SUFFIX}", SCORES) for t in topics}
+        self._image_ch: dict[str, int] = {}
 
     @property
     def path(self) -> Path:
@@ -105,10 +67,15 @@ class MapLogWriter:
         if camera_kind(frame.msgtype) == "compressed":
             self.w.write_raw(raw)
         else:
-            data = encode_image(frame.decode_bgr(), self.image_format, self.jpeg_quality)
-            self._comp.write(f"{frame.topic}/compressed", frame, data, self.image_format)
+            topic = f"{frame.topic}/compressed"
+            if topic not in self._image_ch:
+                self._image_ch[topic] = self.out.add(topic, IMAGE)
+            sec, nsec = divmod(frame.stamp_ns, 1_000_000_000)
+            self.out.write(self._image_ch[topic], frame.log_time_ns, {
+                "timestamp": {"sec": sec, "nsec": nsec}, "frame_id": frame.frame_id, "format": self.image_format,
+                "data": encode_image(frame.decode_bgr(), self.image_format, self.jpeg_quality), "seq": frame.index})
         if score is not None:
-            self.w.write_json(self._score_ch[frame.topic], frame.log_time_ns, score)
+            self.out.write(self._score_ch[frame.topic], frame.log_time_ns, score)
 
     def write_passthrough(self, raw: RawMessage) -> None:
         """A message of a topic kept whole."""

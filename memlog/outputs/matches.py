@@ -1,5 +1,5 @@
 """Match tables (the best map frames of every query frame, as Parquet or CSV) and the query log
-annotated with a ``T/memlog/match`` channel."""
+annotated with a ``T/memlog/match`` channel (``memlog.Match``, in the query's encoding family)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from memlog.errors import DescriptorError
 from memlog.io.atomic import atomic_output
 from memlog.io.mcap import McapLogWriter, copy_log
 from memlog.io.open import open_log
-from memlog.outputs.schemas import schema_bytes
+from memlog.outputs.channels import MATCH, MemlogChannels, family_of
 
 __all__ = ["write_matches", "write_match_log"]
 
@@ -104,18 +104,19 @@ def write_matches(
 
 def write_match_log(query_log: str | os.PathLike[str], path: str | os.PathLike[str], qt: DescriptorTable,
                     ref: DescriptorTable, idx: np.ndarray, sims: np.ndarray, best: np.ndarray) -> Path:
-    """Copy the query log and add ``T/memlog/match`` (schema memlog.Match) per described frame."""
+    """Copy the query log and add ``T/memlog/match`` (``memlog.Match``, in the query's encoding
+    family: :mod:`memlog.outputs.channels`) per described frame."""
     by_frame = {(t, int(i)): r for r, (t, i) in enumerate(zip(qt.topic, qt.frame_index))}
+    topics = sorted(set(qt.topic))
     with open_log(query_log) as reader, McapLogWriter(path, profile=reader.profile) as w:
         copy_log(reader, w)
-        sid = w.add_schema("memlog.Match", "jsonschema", schema_bytes("memlog.Match"))
-        chans = {t: w.add_channel(f"{t}/memlog/match", "json", sid) for t in sorted(set(qt.topic))}
+        out = MemlogChannels(w, family_of(reader, topics))
+        chans = {t: out.add(f"{t}/memlog/match", MATCH) for t in topics}
         for (t, i), r in by_frame.items():
             ms = [{"topic": ref.topic[j], "frame_index": int(ref.frame_index[j]), "similarity": float(s)}
                   for j, s in zip(idx[r], sims[r]) if j >= 0]
-            stamp = int(qt.stamp_ns[r])
-            w.write_json(chans[t], int(qt.log_time_ns[r]), {
-                "timestamp": {"sec": stamp // 1_000_000_000, "nsec": stamp % 1_000_000_000},
-                "frame_index": i, "matches": ms, "confidence": float(best[r]),
+            sec, nsec = divmod(int(qt.stamp_ns[r]), 1_000_000_000)
+            out.write(chans[t], int(qt.log_time_ns[r]), {
+                "timestamp": {"sec": sec, "nsec": nsec}, "frame_index": i, "matches": ms, "confidence": float(best[r]),
             })
     return Path(path)

@@ -39,6 +39,7 @@ from memlog.io.positions import PositionTrack, read_track
 from memlog.io.records import ReadReport
 from memlog.io.types import ImagePayload
 from memlog.outputs.annotated import read_scores, run_config, run_input_identity, scores_message
+from memlog.outputs.channels import family_of
 from memlog.outputs.descriptor_table import write_descriptors
 from memlog.outputs.maplog import MapLogWriter
 from memlog.progress import progress
@@ -428,7 +429,7 @@ def make_map(
             wanted = set(cams) | set(cfg.keep_topics)
             total = sum(n for c in reader.channels() if c.topic in wanted for n in [counts.get(c.id, 0)])
         with MapLogWriter(output, reader.profile, cams, image_format=cfg.image_format,
-                          jpeg_quality=cfg.jpeg_quality) as w:
+                          jpeg_quality=cfg.jpeg_quality, family=family_of(reader, cams)) as w:
             stream = reader.stream(cams, passthrough=cfg.keep_topics)
             for item in progress(stream, total=total, desc="map", unit="msg"):
                 if item.index is None:
