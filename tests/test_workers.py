@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from mcap.reader import make_reader
 
 from memlog.io import FrameWindow
@@ -15,27 +16,29 @@ from memlog.io.open import open_log
 from tests.conftest import FIXTURES
 
 
-def _normalised(path: Path) -> tuple[list[tuple], dict[str, dict[str, str]]]:
-    """Every message (topic, times, sequence, bytes), with the timing fields of score records
-    removed; and the metadata with the run's timing removed."""
+def _normalised(path: Path) -> tuple[list[tuple], dict[str, list[dict]], dict[str, dict[str, str]]]:
+    """Every message but the score records (topic, times, sequence, bytes); the score records
+    (decoded, whatever their encoding) without their timing; the metadata without the run's timing."""
+    from memlog.outputs.annotated import read_scores
+
     msgs = []
     with open(path, "rb") as fh:
         r = make_reader(fh, validate_crcs=True)
         for _, ch, m in r.iter_messages(log_time_order=False):
-            data = bytes(m.data)
-            if ch.topic.endswith("/memlog/scores"):
-                rec = json.loads(data)
-                rec.pop("timing_ms")
-                data = json.dumps(rec, sort_keys=True).encode()
-            msgs.append((ch.topic, m.log_time, m.publish_time, m.sequence, data))
+            if not ch.topic.endswith("/memlog/scores"):
+                msgs.append((ch.topic, m.log_time, m.publish_time, m.sequence, bytes(m.data)))
         meta = {md.name: dict(md.metadata) for md in r.iter_metadata()}
+    scores = read_scores(path)
+    for recs in scores.values():
+        for rec in recs:
+            rec.pop("timing_ms")
     summary = {k: json.loads(v) for k, v in meta["memlog_summary"].items()}
     summary.pop("seconds")
     summary.pop("output")
     for t in summary["topics"].values():
         t.pop("mean_ms_per_frame")
     meta["memlog_summary"] = summary
-    return msgs, meta
+    return msgs, scores, meta
 
 
 def test_two_workers_write_the_same_log_as_one(tmp_path: Path) -> None:
@@ -45,20 +48,24 @@ def test_two_workers_write_the_same_log_as_one(tmp_path: Path) -> None:
     one = score(log, tmp_path / "one.mcap", cfg, window)
     two = score(log, tmp_path / "two.mcap", cfg, window, workers=2, chunk_frames=1)
     assert one.topics["/camera/image/compressed"].scored == two.topics["/camera/image/compressed"].scored == 4
-    a_msgs, a_meta = _normalised(tmp_path / "one.mcap")
-    b_msgs, b_meta = _normalised(tmp_path / "two.mcap")
-    assert a_msgs == b_msgs  # same records, same order in the file
+    a_msgs, a_scores, a_meta = _normalised(tmp_path / "one.mcap")
+    b_msgs, b_scores, b_meta = _normalised(tmp_path / "two.mcap")
+    assert a_msgs == b_msgs  # same records (annotations incl.), same order in the file
+    assert a_scores == b_scores  # same scores, bit for bit
     assert a_meta == b_meta  # same config, model hashes, devices, counts
 
 
-def test_chunks_cover_the_window_in_order() -> None:
+@pytest.mark.parametrize("indexed", [True, False])
+def test_chunks_cover_the_window_in_order(indexed: bool) -> None:
     with open_log(FIXTURES / "demo.mcap") as log:
+        if not indexed:  # plan by reading the messages, as for a log without an index
+            log.topic_times = lambda topic: None  # type: ignore[method-assign]
         window = FrameWindow(stride=3)
         chunks = plan_chunks(log, window, 4)
         want = [(f.topic, f.index, f.log_time_ns) for f in log.frames(stride=3)]
     got = []
     for c in chunks:
-        assert c.n <= 4
+        assert c.n <= 4 or len({ts for t, i, ts in want if i in c.indices.get(t, ())}) == 1
         got.extend(sorted((t, i) for t, idx in c.indices.items() for i in idx))
     assert sorted(got) == sorted((t, i) for t, i, _ in want)
     assert sum(c.n for c in chunks) == len(want)
@@ -78,3 +85,37 @@ def test_executors_keep_job_order() -> None:
     finally:
         ex.close()
     assert threads_per_worker(2, 0) >= 1 and threads_per_worker(4, 3) == 3
+
+
+def _repeating_log(path: Path) -> None:
+    """demo's compressed frames with a stop (frame 1 repeated 3x) and a loop (frames 0-1 again)."""
+    from memlog.io import McapLogWriter
+
+    with open_log(FIXTURES / "demo.mcap") as log:
+        msgs = list(log.messages(["/camera/image/compressed"]))
+    order = [0, 1, 1, 1, 2, 3, 0, 1]
+    with McapLogWriter(path, profile="ros2") as w:
+        for k, i in enumerate(order):
+            w.write(w.channel_for(msgs[i].channel), 1_700_000_000_000_000_000 + k * 100_000_000, msgs[i].data)
+
+
+def test_repeated_frames_share_one_scoring_across_workers(tmp_path: Path) -> None:
+    from memlog.outputs.annotated import read_scores
+
+    log = tmp_path / "stop.mcap"
+    _repeating_log(log)
+    cfg = ScoreConfig(all_scores=True)
+    one = score(log, tmp_path / "one.mcap", cfg)
+    score(log, tmp_path / "two.mcap", cfg, workers=2, chunk_frames=2)  # a chunk starts inside the stop
+    assert _normalised(tmp_path / "one.mcap") == _normalised(tmp_path / "two.mcap")
+    recs = read_scores(tmp_path / "one.mcap")["/camera/image/compressed"]
+    shared = [(r["frame_index"], r["shared"], r["shared_from"]) for r in recs]
+    assert shared == [(0, False, 0), (1, False, 1), (2, True, 1), (3, True, 1), (4, False, 4), (5, False, 5),
+                      (6, False, 6), (7, False, 7)]  # the loop is no repeat of the previous frame
+    for k in (2, 3):
+        for key in ("ms", "ss", "es", "memorability", "selected"):
+            assert recs[k][key] == recs[1][key]
+    off = score(log, tmp_path / "off.mcap", cfg.replace(duplicates="off"))
+    frame1 = recs[1]["crops_scored"]  # the two repeats of frame 1 did not go through ResMem again
+    assert one.topics["/camera/image/compressed"].crops_run == off.topics["/camera/image/compressed"].crops_run - 2 * frame1
+    assert frame1 > 0

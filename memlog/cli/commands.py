@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -166,7 +167,9 @@ def add_score(sub: Any) -> None:
     p.add_argument("-o", "--output", required=True,
                    help="output .mcap; with several logs an existing directory, receiving NAME.scored.mcap per log")
     p.add_argument("--maps", action="store_true", help="also write the three maps as images")
-    p.add_argument("--workers", type=positive_int, default=1, help="score this many logs at once (processes)")
+    p.add_argument("--workers", type=positive_int, default=1,
+                   help="worker processes scoring chunks of frames (each with its share of the cores); the output "
+                        "is the same as with one")
     add_window_flags(p)
     add_config_flags(p)
     p.set_defaults(func=cmd_score)
@@ -193,12 +196,6 @@ def _score_outputs(logs: list[str], output: str) -> list[str]:
     return [str(out_dir / f"{n}.scored.mcap") for n in names]
 
 
-def _score_one(log: str, output: str, config: Any, window: Any) -> Any:
-    from memlog.steps.score import score
-
-    return score(log, output, config, window)
-
-
 def _print_run(run: Any) -> None:
     for topic, s in run.topics.items():
         d = s.to_dict()
@@ -218,30 +215,26 @@ def cmd_score(args: argparse.Namespace) -> int:
     for out in outputs:
         check_output(out, args.logs)
     windows = [frame_window(args, log) for log in args.logs]
-    if args.workers > 1 and len(args.logs) > 1:
-        from concurrent.futures import ProcessPoolExecutor
+    from memlog.errors import MemlogError
+    from memlog.steps.parallel import make_executor
+    from memlog.steps.score import score
 
-        from memlog.progress import set_quiet
-
-        codes = []
-        cfg = config.replace(threads=max(1, (config.threads or 2) // args.workers))
-        with ProcessPoolExecutor(args.workers, initializer=set_quiet, initargs=(True,)) as ex:
-            futs = [ex.submit(_score_one, log, o, cfg, w) for log, o, w in zip(args.logs, outputs, windows)]
-            for log, f in zip(args.logs, futs):
-                try:
-                    run = f.result()
-                except Exception as exc:  # noqa: BLE001 - one log's failure is reported, the others go on
-                    print(f"memlog: error: {log}: {exc}", flush=True)
-                    codes.append(EXIT_ERROR)
-                    continue
-                _print_run(run)
-                codes.append(report_damage(run.report))
-        return max(codes)
     code = EXIT_OK
-    for log, o, w in zip(args.logs, outputs, windows):
-        run = _score_one(log, o, config, w)
-        _print_run(run)
-        code = max(code, report_damage(run.report))
+    ex = make_executor(args.workers)  # one pool for every log: models load once per worker
+    try:
+        for log, o, w in zip(args.logs, outputs, windows):
+            try:
+                run = score(log, o, config, w, executor=ex)
+            except MemlogError as exc:
+                if len(args.logs) == 1:
+                    raise
+                print(f"memlog: error: {log}: {exc}", file=sys.stderr)  # the other logs go on
+                code = max(code, EXIT_ERROR)
+                continue
+            _print_run(run)
+            code = max(code, report_damage(run.report))
+    finally:
+        ex.close()
     return code
 
 
@@ -264,6 +257,12 @@ def add_map(sub: Any) -> None:
     p.add_argument("--descriptors", help="descriptor Parquet path (default: MAP.parquet)")
     p.add_argument("--json", action="store_true", help="print the map summary as JSON")
     p.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC", help="camera topic(s) to map")
+    p.add_argument("--stride", type=positive_int, help="consider every n-th frame of each topic (default 1)")
+    p.add_argument("--workers", type=positive_int, help="worker processes scoring frames (default 1)")
+    p.add_argument("--candidates", type=positive_int, metavar="K",
+                   help="segment selection: run ResMem on at most K frames per segment, the best by staticity and "
+                        "entropy spread over the segment (approximate; default: exactly the frames that can still "
+                        "win, which keeps the same frames as scoring every frame)")
     add_config_flags(p)
     p.set_defaults(func=cmd_map)
 
@@ -283,7 +282,7 @@ def map_config(args: argparse.Namespace) -> Any:
         flags["topics"] = tuple(args.topics)
     if args.keep_topic:
         flags["keep_topics"] = tuple(args.keep_topic)
-    for key in ("position_topic", "image_format", "jpeg_quality", "descriptors"):
+    for key in ("position_topic", "image_format", "jpeg_quality", "descriptors", "stride", "workers", "candidates"):
         v = getattr(args, key)
         if v is not None:
             flags["descriptors_path" if key == "descriptors" else key] = v
@@ -310,6 +309,9 @@ def cmd_map(args: argparse.Namespace) -> int:
         gaps = len(s.gaps)
         info(f"memlog: {t}: {s.n_kept}/{s.n_frames} kept; dropped: "
              + ", ".join(f"{k} {v}" for k, v in s.reason_counts().items()) + (f"; {gaps} gap(s)" if gaps else ""))
+    if res.crops_run is not None and res.crops_full:
+        info(f"memlog: ResMem ran {res.crops_run} crops, {100 * res.crops_run / res.crops_full:.0f} % of the "
+             f"{res.crops_full} scoring every frame would run")
     info(f"memlog: wrote {res.output}" + (f" and {res.descriptors}" if res.descriptors else ""))
     if args.json:
         print(json.dumps(d, indent=2))

@@ -262,6 +262,20 @@ class LogReader(ABC):
         without reading message data; None when the format or this file has no such index."""
         return None
 
+    def index_offsets(self, topics: Iterable[str], start_ns: int) -> dict[str, int] | None:
+        """Per topic, how many of its messages lie before ``start_ns``, from :meth:`topic_times`
+        (None when a topic has no such index). Frame indices then count indexed messages, also
+        those a damaged region makes unreadable."""
+        import numpy as np
+
+        out: dict[str, int] = {}
+        for t in topics:
+            times = self.topic_times(t)
+            if times is None:
+                return None
+            out[t] = int(np.searchsorted(np.asarray(times), start_ns, side="left"))
+        return out
+
     def stream(
         self,
         topics: Iterable[str] | None = None,
@@ -290,8 +304,14 @@ class LogReader(ABC):
             return
         decoders: dict[int, Any] = {}
         counters: dict[str, int] = {}
-        # Read from the start so indices are positions on the topic; skip decoding before the window.
-        for m in self.messages(cams | extra, None if cams else start_ns, end_ns, True):
+        read_from = None if cams else start_ns
+        if start_ns is not None and cams:
+            # With an index of message times, the window's first index is known without reading
+            # what comes before it; otherwise read from the start, counting.
+            offsets = self.index_offsets(cams, start_ns)
+            if offsets is not None:
+                counters, read_from = offsets, start_ns
+        for m in self.messages(cams | extra, read_from, end_ns, True):
             topic = m.channel.topic
             if topic not in cams:
                 if start_ns is None or m.log_time >= start_ns:

@@ -70,9 +70,9 @@ def family_of(reader: LogReader, topics: Iterable[str] | None = None) -> str:
 
 _SCORE_FIELDS = ("timestamp", "log_time", "topic", "frame_index", "ms", "ms_low", "ms_high", "ms_exact", "ss", "es",
                  "memorability", "crops_scored", "crops_surrogate", "selected", "rejected_by", "thresholds",
-                 "detections", "timing_ms", "error")
+                 "detections", "timing_ms", "error", "shared", "shared_from")
 _SCORE_DEFAULTS: dict[str, Any] = {"ms_exact": True, "crops_scored": 0, "crops_surrogate": 0, "detections": 0,
-                                   "timing_ms": {}, "topic": ""}
+                                   "timing_ms": {}, "topic": "", "shared": False}
 
 
 def canonical_scores(rec: Mapping[str, Any]) -> dict[str, Any]:
@@ -80,6 +80,8 @@ def canonical_scores(rec: Mapping[str, Any]) -> dict[str, Any]:
     values become null, e.g. the crop matrix a map step dropped), so every encoding holds the same
     record."""
     out = {k: rec.get(k, _SCORE_DEFAULTS.get(k)) for k in _SCORE_FIELDS}
+    if out["shared_from"] is None:
+        out["shared_from"] = out["frame_index"]
     out["timing_ms"] = dict(out["timing_ms"] or {})
     if out["error"] == "":
         out["error"] = None

@@ -83,6 +83,10 @@ FRAME_SCORES: dict[str, Any] = {
             "additionalProperties": {"type": "number"},
         },
         "error": {"type": ["string", "null"]},
+        "shared": {"type": "boolean", "description": "the scores are those of an earlier pixel-identical frame "
+                   "of the topic (a robot standing still): it was not scored again"},
+        "shared_from": {"type": "integer", "minimum": 0,
+                        "description": "frame index whose scores this record carries (its own when not shared)"},
     },
     "required": ["timestamp", "log_time", "frame_index", "ms", "ss", "es", "selected", "rejected_by", "thresholds"],
 }
@@ -197,6 +201,9 @@ MESSAGES: dict[str, Message] = {m.name: m for m in (
         Field("detections", "uint32", "dynamic-object boxes kept"),
         Field("timing_ms", "StageTime", "milliseconds per stage, in stage order", array=True),
         Field("error", "string", "why the frame could not be scored; none when it was", nullable=True),
+        Field("shared", "bool", "the scores are those of an earlier pixel-identical frame of the topic (not "
+              "scored again)"),
+        Field("shared_from", "uint64", "frame index whose scores this record carries (its own when not shared)"),
     )),
     Message("MatchCandidate", "A map frame matched to a query frame", (
         Field("topic", "string", "camera topic of the map frame"),

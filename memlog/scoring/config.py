@@ -55,6 +55,8 @@ class ScoreConfig:
     threads: int = 0  # onnxruntime intra-op threads; 0 = all cores
     device: Literal["auto", "cpu", "cuda"] = "auto"
     maps: bool = False
+    duplicates: Literal["identical", "near", "off"] = "identical"
+    near_distance: float = 0.01
 
     def __post_init__(self) -> None:
         for name in ("mt", "st", "et"):
@@ -69,6 +71,13 @@ class ScoreConfig:
             raise ConfigError("det_conf and det_min_area must be within [0, 1]")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ConfigError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+        if self.duplicates not in ("identical", "near", "off"):
+            raise ConfigError(f"duplicates must be 'identical', 'near' or 'off', got {self.duplicates!r}")
+        if self.duplicates == "near" and self.mode != "fast":
+            raise ConfigError("duplicates 'near' (sharing the scores of nearly identical frames) is approximate: "
+                              "only with --fast; exact mode shares pixel-identical frames only")
+        if not 0.0 < self.near_distance < 1.0:
+            raise ConfigError(f"near_distance must be in (0, 1), got {self.near_distance!r}")
         for name, low in (("threads", 0), ("crop_batch", 1), ("entropy_radius", 0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < low:

@@ -24,7 +24,9 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+import hashlib
+from collections.abc import Hashable
+from dataclasses import dataclass, field, replace
 from typing import Any, TypeVar
 
 import cv2
@@ -35,7 +37,7 @@ from memlog.errors import ScoringError
 from memlog.models.resmem import FRAME
 from memlog.scoring.config import ScoreConfig
 
-__all__ = ["Scorer", "FrameScore", "CheapStage", "resize_frame", "STAGES"]
+__all__ = ["Scorer", "FrameScore", "SharedScore", "CheapStage", "resize_frame", "STAGES", "pixels_digest"]
 
 STAGES = ("staticity", "entropy", "memorability")
 T = TypeVar("T")
@@ -90,6 +92,7 @@ class FrameScore:
     width: int = 0
     height: int = 0
     maps: dict[str, npt.NDArray[Any]] = field(default_factory=dict)
+    shared_from: int | None = None  # frame index whose scores these are (a duplicate frame)
 
     def to_json(self) -> dict[str, Any]:
         m = None
@@ -103,7 +106,38 @@ class FrameScore:
             "selected": self.selected, "rejected_by": self.rejected_by,
             "detections": len(self.detections),
             "timing_ms": {k: round(v, 3) for k, v in self.timing_ms.items()},
+            "shared": self.shared_from is not None, "shared_from": self.shared_from,
         }
+
+
+@dataclass(frozen=True)
+class SharedScore:
+    """The result for a frame that repeats the previous frame of its topic (pixel-identical; or,
+    with ``duplicates="near"``, nearly so): not scored again, it carries frame ``index``'s scores."""
+
+    index: int
+    timing_ms: dict[str, float] = field(default_factory=dict)
+
+    def apply(self, previous: FrameScore, index: int | None = None) -> FrameScore:
+        """``previous``'s scores (those of frame ``index``, default :attr:`index`) as this frame's."""
+        return replace(previous, shared_from=self.index if index is None else index, timing_ms=dict(self.timing_ms))
+
+
+def _thumb(img: npt.NDArray[Any]) -> npt.NDArray[np.float64]:
+    """A 32 x 16 grey thumbnail as a zero-mean unit vector (near-duplicate test)."""
+    g = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    v = cv2.resize(g, (32, 16), interpolation=cv2.INTER_AREA).astype(np.float64).ravel()
+    v -= v.mean()
+    n = float(np.linalg.norm(v))
+    return v / n if n > 0 else v
+
+
+def pixels_digest(img: npt.NDArray[Any]) -> bytes:
+    """A digest of decoded pixels (shape, type and values): equal digests, identical frames."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(repr((img.shape, img.dtype.str)).encode())
+    h.update(np.ascontiguousarray(img).tobytes())
+    return h.digest()
 
 
 class Scorer:
@@ -141,6 +175,10 @@ class Scorer:
             threads = self.config.threads or None
             exact = Memorability(self._mem_path, threads=threads, batch=self.config.crop_batch,
                                  device=self.config.device)
+            from memlog.models.runtime import session_device
+
+            if session_device(exact.session) == "cuda":
+                exact.batch = 25  # a GPU runs a frame's 25 crops in one call as fast as a few
             if self.config.mode == "fast":
                 from memlog.models.quantize import resmem_int8_bounds, resmem_int8_path
                 from memlog.scoring.memorability import FastMemorability
@@ -268,28 +306,49 @@ class Scorer:
         return self.finish(self.cheap(bgr))
 
     def score_stream(
-        self, items: Iterable[T], decode: Callable[[T], npt.NDArray[Any]], prefetch: int = 2
-    ) -> Iterator[tuple[T, FrameScore | Exception]]:
+        self,
+        items: Iterable[T],
+        decode: Callable[[T], npt.NDArray[Any]],
+        prefetch: int = 2,
+        *,
+        identity: Callable[[T], tuple[Hashable, int]] | None = None,
+        seed: dict[Hashable, tuple[int, Any]] | None = None,
+    ) -> Iterator[tuple[T, FrameScore | SharedScore | Exception]]:
         """Score a stream with the cheap half of later frames overlapping the CNN.
 
         ``decode`` turns an item into pixels (runs in the worker thread). Yields the item with
         its :class:`FrameScore`, or with the exception when decoding/scoring failed (the
-        stream goes on).
+        stream goes on). With ``identity`` (item -> (group, frame index), e.g. the topic) and
+        ``config.duplicates`` not "off", a frame that repeats the previous frame of its group
+        yields a :class:`SharedScore` instead of being scored again; ``seed`` gives, per group,
+        the frame before the stream's first one (index, :meth:`duplicate_key` of its pixels).
         """
-        def cheap_of(item: T) -> CheapStage:
+        share = identity is not None and self.config.duplicates != "off"
+        last: dict[Hashable, tuple[int, Any]] = dict(seed or {})
+
+        def cheap_of(item: T) -> CheapStage | SharedScore:
             t0 = time.perf_counter()
             img = decode(item)
             dt = (time.perf_counter() - t0) * 1e3
+            if share and identity is not None:
+                group, index = identity(item)
+                key = self.duplicate_key(img)
+                prev = last.get(group)
+                if prev is not None and self.same_frame(prev[1], key):
+                    last[group] = (prev[0], key)
+                    return SharedScore(prev[0], {"decode": dt, "duplicate": (time.perf_counter() - t0) * 1e3 - dt})
+                last[group] = (index, key)
             out = self.cheap(img)
             out.timing_ms = {"decode": dt, **out.timing_ms}
             return out
 
-        pending: deque[tuple[T, Future[CheapStage]]] = deque()
+        pending: deque[tuple[T, Future[CheapStage | SharedScore]]] = deque()
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="memlog-cheap") as pool:
-            def drain_one() -> tuple[T, FrameScore | Exception]:
+            def drain_one() -> tuple[T, FrameScore | SharedScore | Exception]:
                 item, fut = pending.popleft()
                 try:
-                    return item, self.finish(fut.result())
+                    res = fut.result()
+                    return item, res if isinstance(res, SharedScore) else self.finish(res)
                 except Exception as exc:  # one bad frame never stops the run
                     return item, exc
 
@@ -299,3 +358,18 @@ class Scorer:
                     yield drain_one()
             while pending:
                 yield drain_one()
+
+    def duplicate_key(self, img: npt.NDArray[Any]) -> Any:
+        """What decides that two frames are the same: their pixel digest; with
+        ``duplicates="near"`` (fast mode only) also their thumbnail descriptor."""
+        if self.config.duplicates == "near":
+            return (pixels_digest(img), _thumb(img))
+        return pixels_digest(img)
+
+    def same_frame(self, a: Any, b: Any) -> bool:
+        """Whether frames with duplicate keys ``a`` and ``b`` share one scoring."""
+        if self.config.duplicates == "near":
+            if a[0] == b[0]:
+                return True
+            return float(1.0 - np.dot(a[1], b[1])) < self.config.near_distance
+        return bool(a == b)

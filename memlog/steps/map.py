@@ -38,6 +38,7 @@ from memlog.io.open import open_log
 from memlog.io.positions import PositionTrack, read_track
 from memlog.io.records import ReadReport
 from memlog.io.types import ImagePayload
+from memlog.models.runtime import choose_providers
 from memlog.outputs.annotated import read_scores, run_config, run_input_identity, scores_message
 from memlog.outputs.channels import family_of
 from memlog.outputs.descriptor_table import write_descriptors
@@ -391,6 +392,7 @@ def make_map(
     dpath = cfg.descriptors_file(output)
     inputs: list[Any] = [log] + ([scores] if isinstance(scores, (str, os.PathLike)) else [])
     check_output(output, inputs)
+    choose_providers(cfg.score.device)  # --device cuda without CUDA: said before any work
     if dpath is not None:
         check_output(dpath, inputs + [output], flag="--descriptors")
     describer = make_describer(cfg.descriptor) if cfg.descriptor is not None else None

@@ -24,7 +24,7 @@ import json
 import os
 import platform
 import time
-from collections.abc import Container, Iterator, Mapping
+from collections.abc import Container, Hashable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,10 +38,11 @@ from memlog.io.identity import log_identity
 from memlog.io.open import open_log
 from memlog.io.records import ReadReport
 from memlog.io.types import ImagePayload
+from memlog.models.runtime import choose_providers
 from memlog.outputs.annotated import AnnotatedLogWriter
 from memlog.progress import progress
 from memlog.scoring.config import ScoreConfig
-from memlog.scoring.scorer import STAGES, FrameScore, Scorer
+from memlog.scoring.scorer import STAGES, FrameScore, Scorer, SharedScore
 from memlog.steps.parallel import Executor, InProcess, cached, make_executor, threads_per_worker
 
 __all__ = ["score", "ScoreRun", "TopicSummary", "iter_scores", "ScoredFrame", "ScoredChunk", "score_chunk",
@@ -59,6 +60,7 @@ class TopicSummary:
     rejected: dict[str, int] = field(default_factory=lambda: {s: 0 for s in STAGES})
     time_ms: dict[str, float] = field(default_factory=dict)
     crops_run: int = 0
+    shared: int = 0
 
     def add(self, s: FrameScore | None) -> None:
         self.frames_seen += 1
@@ -67,7 +69,10 @@ class TopicSummary:
             return
         self.scored += 1
         self.selected += int(s.selected)
-        self.crops_run += s.crops_scored
+        if s.shared_from is None:  # a repeated frame carries its original's counts: not run again
+            self.crops_run += s.crops_scored
+        else:
+            self.shared += 1
         if s.rejected_by in self.rejected:
             self.rejected[s.rejected_by] += 1
         for k, v in s.timing_ms.items():
@@ -78,7 +83,7 @@ class TopicSummary:
         return {
             "frames_seen": self.frames_seen, "scored": self.scored, "selected": self.selected,
             "undecodable": self.undecodable, "rejected": dict(self.rejected), "resmem_crops_run": self.crops_run,
-            "mean_ms_per_frame": mean,
+            "shared_with_previous_frame": self.shared, "mean_ms_per_frame": mean,
         }
 
 
@@ -107,15 +112,20 @@ def iter_scores(
     *,
     errors: list[FrameError] | None = None,
     indices: Mapping[str, Container[int]] | None = None,
-) -> Iterator[tuple[Frame, FrameScore | None, str | None]]:
+    seed: dict[Hashable, tuple[int, Any]] | None = None,
+) -> Iterator[tuple[Frame, FrameScore | SharedScore | None, str | None]]:
     """Score the frames of ``window`` (only ``indices`` when given) without writing anything:
     yields (frame, score or None, error).
 
     A frame whose image does not decode is reported through ``reader`` (damage) and yielded
-    with None; any other failure is raised.
+    with None; any other failure is raised. A frame that repeats the previous frame of its topic
+    gets that frame's scores (``shared_from``); when that frame was before this stream (``seed``)
+    it is yielded as a :class:`SharedScore` for the caller to resolve.
     """
     frames = reader.frames(window.topics, window.start_ns, window.end_ns, window.stride, errors, indices=indices)
-    for frame, res in scorer.score_stream(frames, lambda fr: fr.decode_bgr()):
+    previous: dict[str, FrameScore] = {}
+    for frame, res in scorer.score_stream(frames, lambda fr: fr.decode_bgr(), identity=lambda fr: (fr.topic, fr.index),
+                                          seed=seed):
         if isinstance(res, ImageDecodeError):
             err = reader.decode_error(frame, res)
             if errors is not None:
@@ -123,12 +133,16 @@ def iter_scores(
             yield frame, None, err.reason
         elif isinstance(res, BaseException):
             raise res
+        elif isinstance(res, SharedScore):
+            prev = previous.get(frame.topic)  # the frame it repeats (never itself a shared one)
+            yield frame, res.apply(prev) if prev is not None else res, None
         else:
+            previous[frame.topic] = res
             yield frame, res, None
 
 
 # -- chunks of frames, scored by workers ----------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Chunk:
     """A contiguous run of frames in log-time order: their indices per topic and the log-time
     range [``start_ns``, ``end_ns``) that holds them (so a worker's reader can seek)."""
@@ -137,6 +151,7 @@ class Chunk:
     start_ns: int
     end_ns: int
     n: int
+    prev: dict[str, tuple[int, int]] = field(default_factory=dict)  # topic -> (index, log time) of the frame before
 
 
 @dataclass
@@ -153,7 +168,7 @@ class ScoredFrame:
 class ScoredChunk:
     """The results of one chunk, in log-time order, and what its reader found (frame-level damage)."""
 
-    frames: list[ScoredFrame]
+    frames: list[tuple[Frame, FrameScore | SharedScore | None, str | None]]
     report: ReadReport
     errors: list[FrameError]
     provenance: dict[str, Any] = field(default_factory=dict)
@@ -164,30 +179,76 @@ def _stripped(frame: Frame) -> Frame:
 
 
 def plan_chunks(reader: LogReader, window: FrameWindow, size: int) -> list[Chunk]:
-    """The frames of ``window`` cut into chunks of ``size`` frames, in log-time order (one pass
-    over the camera messages; nothing is deserialized)."""
+    """The frames of ``window`` cut into chunks of ``size`` frames, in log-time order: from the
+    index of message times when the log has one (nothing read), else from one pass over the camera
+    messages (nothing deserialized)."""
     topics = set(reader.check_camera_topics(window.topics))
+    planned = _plan_from_index(reader, sorted(topics), window, size)
+    if planned is not None:
+        return planned
     chunks: list[Chunk] = []
     cur: dict[str, set[int]] = {}
     n = 0
     t0 = t1 = 0
     counters: dict[str, int] = {}
+    last: dict[str, tuple[int, int]] = {}
+    prev: dict[str, tuple[int, int]] = {}
     for m in reader.messages(topics, None, window.end_ns, True):
         topic = m.channel.topic
         idx = counters.get(topic, 0)
         counters[topic] = idx + 1
         if (window.start_ns is not None and m.log_time < window.start_ns) or idx % window.stride:
             continue
+        if n >= size and m.log_time != t1:  # frames of one log time stay in one chunk
+            chunks.append(Chunk({k: frozenset(v) for k, v in cur.items()}, t0, t1 + 1, n,
+                                {t: prev[t] for t in cur if t in prev}))
+            cur, n = {}, 0
         if n == 0:
             t0 = m.log_time
+            prev = dict(last)
         cur.setdefault(topic, set()).add(idx)
+        last[topic] = (idx, m.log_time)
         t1 = m.log_time
         n += 1
-        if n == size:
-            chunks.append(Chunk({k: frozenset(v) for k, v in cur.items()}, t0, t1 + 1, n))
-            cur, n = {}, 0
     if n:
-        chunks.append(Chunk({k: frozenset(v) for k, v in cur.items()}, t0, t1 + 1, n))
+        chunks.append(Chunk({k: frozenset(v) for k, v in cur.items()}, t0, t1 + 1, n,
+                            {t: prev[t] for t in cur if t in prev}))
+    return chunks
+
+
+def _plan_from_index(reader: LogReader, topics: list[str], window: FrameWindow, size: int) -> list[Chunk] | None:
+    import numpy as np
+
+    entries: list[tuple[int, int, str, int]] = []
+    for k, t in enumerate(topics):
+        times = reader.topic_times(t)
+        if times is None:
+            return None
+        times = np.asarray(times, dtype=np.int64)
+        idx = np.arange(len(times))
+        ok = (idx % window.stride) == 0
+        if window.start_ns is not None:
+            ok &= times >= window.start_ns
+        if window.end_ns is not None:
+            ok &= times < window.end_ns
+        entries.extend((int(times[i]), k, t, int(i)) for i in np.flatnonzero(ok))
+    entries.sort()
+    chunks = []
+    last: dict[str, tuple[int, int]] = {}
+    a = 0
+    while a < len(entries):
+        b = min(a + size, len(entries))
+        while b < len(entries) and entries[b][0] == entries[b - 1][0]:
+            b += 1  # frames of one log time stay in one chunk (their order is the reader's)
+        part = entries[a:b]
+        a = b
+        ind: dict[str, set[int]] = {}
+        prev = dict(last)
+        for ts, _, t, i in part:
+            ind.setdefault(t, set()).add(i)
+            last[t] = (i, ts)
+        chunks.append(Chunk({k: frozenset(v) for k, v in ind.items()}, part[0][0], part[-1][0] + 1, len(part),
+                            {t: prev[t] for t in ind if t in prev}))
     return chunks
 
 
@@ -203,9 +264,24 @@ def score_chunk(log: str, config: ScoreConfig, window: FrameWindow, chunk: Chunk
         reader.on_warning = lambda text: None
         errors: list[FrameError] = []
         w = window if chunk is None else FrameWindow(window.topics, chunk.start_ns, chunk.end_ns, window.stride)
-        out = [ScoredFrame(_stripped(f), s, e) for f, s, e in
-               iter_scores(reader, scorer, w, errors=errors, indices=None if chunk is None else chunk.indices)]
+        seed = _seed(reader, scorer, chunk) if chunk is not None and config.duplicates != "off" else None
+        out = [(_stripped(f), s, e) for f, s, e in
+               iter_scores(reader, scorer, w, errors=errors, indices=None if chunk is None else chunk.indices,
+                           seed=seed)]
         return ScoredChunk(out, reader.report, errors, scorer.provenance())
+
+
+def _seed(reader: LogReader, scorer: Scorer, chunk: Chunk) -> dict[Hashable, tuple[int, Any]]:
+    """The duplicate keys of the frames just before a chunk, so a chunk's first frame that
+    repeats the previous one is recognised as in a one-process run."""
+    seed: dict[Hashable, tuple[int, Any]] = {}
+    for topic, (idx, ts) in chunk.prev.items():
+        for f in reader.frames([topic], ts, ts + 1, indices={topic: {idx}}):
+            try:
+                seed[topic] = (idx, scorer.duplicate_key(f.decode_bgr()))
+            except ImageDecodeError:
+                pass
+    return seed
 
 
 def scored_frames(
@@ -227,10 +303,13 @@ def scored_frames(
     if executor is None or isinstance(executor, InProcess):
         sc = scorer or _scorer_for(config)
         for f, s, e in iter_scores(reader, sc, window, errors=errors):
+            if isinstance(s, SharedScore):  # one stream resolves every repeat; cannot happen
+                raise AssertionError("unresolved shared score")
             yield ScoredFrame(_stripped(f), s, e)
         return
     wcfg = config.replace(threads=threads_per_worker(executor.workers, config.threads))
     chunks = plan_chunks(reader, window, chunk_frames)
+    last: dict[str, tuple[int, FrameScore]] = {}
     for res in executor.map_ordered(score_chunk, ((str(log), wcfg, window, c) for c in chunks)):
         rep = reader.report
         rep.bad_messages += res.report.bad_messages
@@ -241,7 +320,15 @@ def scored_frames(
             errors.extend(res.errors)
         if provenance is not None and not provenance:
             provenance.update(res.provenance)
-        yield from res.frames
+        for frame, got, err in res.frames:
+            if isinstance(got, SharedScore):  # repeats the last scored frame of the chunk before
+                index, original = last[frame.topic]
+                fs: FrameScore | None = got.apply(original, index)
+            else:
+                fs = got
+                if fs is not None and fs.shared_from is None:
+                    last[frame.topic] = (frame.index, fs)
+            yield ScoredFrame(frame, fs, err)
 
 
 def _run_metadata(reader: LogReader, config: ScoreConfig, prov: dict[str, Any], window: FrameWindow,
@@ -276,6 +363,7 @@ def score(
     window = window or FrameWindow()
     t_start = time.perf_counter()
     check_output(output, [log])
+    choose_providers(config.device)  # --device cuda without CUDA: said now, not after copying the log
     own = executor is None
     ex = executor or make_executor(workers)
     try:
