@@ -64,7 +64,8 @@ class MapConfig:
     copied whole (GPS, odometry); ``position_topic``: NavSatFix/pose/odometry topic for
     positions (default: the first found); ``image_format``/``jpeg_quality``: how raw frames
     are encoded; ``descriptor``: reference descriptor kind (None: no descriptors);
-    ``descriptors_path``: the Parquet file (default: the map path with ``.parquet``).
+    ``descriptors_path``: the Parquet file (default: the map path with ``.parquet``);
+    ``descriptor_dtype``: how it stores them, float32 or float16 (half the size; read back as float32).
     """
 
     score: ScoreConfig = field(default_factory=ScoreConfig)
@@ -76,8 +77,11 @@ class MapConfig:
     jpeg_quality: int = 90
     descriptor: str | None = "thumbnail"
     descriptors_path: str | None = None
+    descriptor_dtype: Literal["float32", "float16"] = "float32"
 
     def __post_init__(self) -> None:
+        if self.descriptor_dtype not in ("float32", "float16"):
+            raise ConfigError(f"descriptor_dtype must be float32 or float16, got {self.descriptor_dtype!r}")
         if self.image_format not in ("jpeg", "png"):
             raise ConfigError(f"image_format must be jpeg or png, got {self.image_format!r}")
         q = self.jpeg_quality
@@ -319,7 +323,8 @@ def make_map(
             frames, desc = describing.result()
             extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
                      "keep_fraction": sel_cfg.keep_fraction}
-            write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra))
+            write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra),
+                              dtype=cfg.descriptor_dtype)
             result.descriptors = dpath
     result.seconds = time.perf_counter() - t0
     return result
