@@ -127,6 +127,19 @@ def test_dyadic_ties_against_brute_force(small_tiles: None) -> None:
         np.testing.assert_array_equal(sim, bs.astype(np.float32))  # exact values: no rounding at all
 
 
+def test_blank_queries_tie_with_every_frame() -> None:
+    rng = np.random.default_rng(15)
+    q, r = _unit(rng, 6, 16), _unit(rng, 50, 16)
+    q[[1, 4]] = 0.0  # blank frames describe to zero vectors
+    idx, sim = match(q, r, k=4)
+    np.testing.assert_array_equal(idx[[1, 4]], [[0, 1, 2, 3]] * 2)
+    assert np.all(sim[[1, 4]] == 0)
+    bi, _bs = _brute(q, r, 4)
+    np.testing.assert_array_equal(idx, bi)
+    mask = np.arange(50) >= 45
+    np.testing.assert_array_equal(match(q, r, k=8, ref_mask=mask)[0][1], [45, 46, 47, 48, 49, -1, -1, -1])
+
+
 def test_database_reuse_and_refusals() -> None:
     rng = np.random.default_rng(13)
     q, r = _unit(rng, 5, 8), _unit(rng, 20, 8)

@@ -223,6 +223,17 @@ def _search(q: F32, q_norms: F32, db: Database, k: int, block_rows: int | None) 
     if n_refs == 0 or q.shape[0] == 0:
         return indices, sims
     kk = min(k, n_refs)
+    zero = q_norms == 0
+    if zero.any():  # an all-zero query (a blank frame) ties with every map frame at 0: the first k
+        first = np.arange(kk) if db.index is None else db.index[:kk]
+        indices[np.flatnonzero(zero), :kk] = first
+        sims[np.flatnonzero(zero), :kk] = 0.0
+        if zero.all():
+            return indices, sims
+        rest = np.flatnonzero(~zero)
+        sub_i, sub_s = _search(q[rest], q_norms[rest], db, k, block_rows)
+        indices[rest], sims[rest] = sub_i, sub_s
+        return indices, sims
     rows = max(1, block_rows or QUERY_BLOCK)
     tile = max(kk, MAX_BLOCK_ELEMS // min(rows, q.shape[0]))
     margin = _rounding_margin(q.shape[1], q_norms, db.max_norm)

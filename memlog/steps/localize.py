@@ -150,7 +150,9 @@ def localize(
             write_descriptors(query_descriptors, qt)
     k = min(cfg.k, len(ref))
     db = Database.of(ref.descriptors)
-    search = _search_info(cfg.search, choose(cfg.search, len(ref), len(qt)), map_descriptors)
+    # what the run records about its search (the IVF settings are added below)
+    search: dict[str, Any] = {"method": choose(cfg.search, len(ref), len(qt)), "asked": cfg.search.method,
+                              "map_dtype": stored_dtype(map_descriptors)}
     t0 = time.perf_counter()
     if search["method"] == "ivf":
         index = IVFIndex(db, cfg.search.nlist)
@@ -184,8 +186,3 @@ def localize(
     return LocalizeResult(out, len(qt), len(ref), cfg.k, timing_map, annotated, reused, reports, search,
                           search_timing)
 
-
-def _search_info(cfg: SearchConfig, method: str, map_descriptors: str | os.PathLike[str]) -> dict[str, Any]:
-    """What the run records about its search: method, asked-for method, map storage, IVF settings."""
-    info_: dict[str, Any] = {"method": method, "asked": cfg.method, "map_dtype": stored_dtype(map_descriptors)}
-    return info_
