@@ -5,6 +5,7 @@
     python benchmarks/run.py io              # reading + decoding, convert
     python benchmarks/run.py score           # scorer: ms per stage, paper-literal vs exact vs fast
     python benchmarks/run.py descriptors     # descriptor extraction and matching
+    python benchmarks/run.py search          # localization against a 100,000-frame map (search_bench.py)
 
 Each case runs in a fresh subprocess so its peak RSS (ru_maxrss) is its own.
 """
@@ -28,11 +29,20 @@ LOGS = ["euroc_micro_ros2.mcap", "euroc_micro_foxglove.mcap", "euroc_micro_ros1.
         "nordland_dev_summer.mcap"]
 
 
-def _case(kind: str, *args: str) -> dict[str, Any]:
-    out = subprocess.run([sys.executable, __file__, "--case", kind, *args], capture_output=True, text=True)
+def _case(kind: str, *args: str, script: str = __file__, env: dict[str, str] | None = None) -> dict[str, Any]:
+    """Run ``case_<kind>(*args)`` of ``script`` in a fresh subprocess; its JSON result."""
+    out = subprocess.run([sys.executable, script, "--case", kind, *args], capture_output=True, text=True, env=env)
     if out.returncode != 0:
         raise SystemExit(f"benchmark case {kind} {args} failed:\n{out.stderr}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    res: dict[str, Any] = json.loads(out.stdout.strip().splitlines()[-1])
+    return res
+
+
+def run_case(case: list[str], cases: dict[str, Any]) -> int:
+    """The subprocess side of :func:`_case`: print ``case_<kind>(*args)`` as JSON."""
+    kind, *rest = case
+    print(json.dumps(cases[f"case_{kind}"](*rest)))
+    return 0
 
 
 def _peak_mb() -> float:
@@ -256,9 +266,7 @@ def main() -> int:
     ap.add_argument("--case", nargs="+", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.case:
-        kind, *rest = a.case
-        print(json.dumps(globals()[f"case_{kind}"](*rest)))
-        return 0
+        return run_case(a.case, globals())
     if "io" in a.what:
         bench_io()
         bench_big(a.big_mb)
@@ -266,6 +274,8 @@ def main() -> int:
         bench_score(a.frames)
     if "descriptors" in a.what:
         bench_descriptors()
+    if "search" in a.what:  # not in the default set: it builds a ~1.1 GB map in /tmp once
+        subprocess.run([sys.executable, str(Path(__file__).with_name("search_bench.py"))], check=True)
     return 0
 
 

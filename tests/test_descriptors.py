@@ -267,7 +267,10 @@ def test_parquet_round_trip(tmp_path: Path) -> None:
     # Parquet-level view: nulls, fixed-size list, metadata
     raw = pq.read_table(path)
     assert raw.column("ms").null_count == 1 and raw.column("es").null_count == 4
-    assert raw.schema.field("descriptor").type == pa.list_(pa.float32(), 6)
+    field = raw.schema.field("descriptor")
+    assert pa.types.is_fixed_size_list(field.type) and field.type.list_size == 6
+    assert field.type.value_type == pa.float32() and not field.nullable and not field.type.value_field.nullable
+    assert raw.schema.metadata[b"memlog.dtype"] == b"float32"
     assert raw.schema.metadata[b"memlog.kind"] == b"thumbnail"
     assert raw.schema.metadata[b"memlog.dim"] == b"6"
     check_compatible(back.meta, t.meta)

@@ -1,4 +1,5 @@
-"""Tests of memlog.descriptors.search and memlog.outputs.matches: exact search against brute force, confidence, timing, output."""
+"""Tests of memlog.descriptors.search and memlog.outputs.matches: exact search against brute force,
+batched = one by one, confidence, timing, output."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from memlog.errors import DescriptorError
-from memlog.descriptors.search import confidence, match, time_per_query, topk
+from memlog.descriptors import search
+from memlog.descriptors.search import Database, confidence, match, time_per_query, topk
 from memlog.outputs.matches import write_matches
 
 
@@ -76,6 +78,86 @@ def test_match_single_row_and_ties() -> None:
     np.testing.assert_allclose(sim, [[1.0, 1.0, 0.0]])
 
 
+def _dyadic(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
+    """Rows of small multiples of 1/8: every float32 product and sum of them is exact, in any order,
+    so the similarities do not depend on how the BLAS blocks the product, and ties are real."""
+    return (rng.integers(-4, 5, size=(n, d)) / 8.0).astype(np.float32)
+
+
+@pytest.fixture
+def small_tiles(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tiles of a few hundred similarities and groups of 4 columns: many tiles, the group bound used."""
+    monkeypatch.setattr(search, "MAX_BLOCK_ELEMS", 600)
+    monkeypatch.setattr(search, "GROUP", 4)
+
+
+@pytest.mark.parametrize("tiles", [False, True])
+def test_batched_equals_one_by_one_exactly(tiles: bool, request: pytest.FixtureRequest) -> None:
+    if tiles:
+        request.getfixturevalue("small_tiles")
+    rng = np.random.default_rng(11)
+    for unit, (q, r) in enumerate([(_dyadic(rng, 40, 12), _dyadic(rng, 300, 12)),
+                                   (_unit(rng, 40, 64), _unit(rng, 300, 64))]):
+        r[100] = r[7]  # duplicate map frames: tied similarities, broken by the lower index
+        r[250] = r[7]
+        q[3] = r[7]
+        all_at_once = match(q, r, k=6)
+        one_by_one = [match(q[i], r, k=6) for i in range(len(q))]
+        np.testing.assert_array_equal(all_at_once[0], np.concatenate([o[0] for o in one_by_one]))
+        np.testing.assert_array_equal(all_at_once[1], np.concatenate([o[1] for o in one_by_one]))
+        for rows in (1, 3, 17, 1000):
+            blocked = match(q, r, k=6, block_rows=rows)
+            np.testing.assert_array_equal(blocked[0], all_at_once[0])
+            np.testing.assert_array_equal(blocked[1], all_at_once[1])
+        if unit:  # the query is map frame 7, which appears three times
+            assert list(all_at_once[0][3, :3]) == [7, 100, 250]
+        bi, bs = _brute(q, r, 6)
+        np.testing.assert_array_equal(all_at_once[0], bi)
+        np.testing.assert_allclose(all_at_once[1], bs, rtol=0, atol=1e-6)
+
+
+def test_dyadic_ties_against_brute_force(small_tiles: None) -> None:
+    """Many exact ties (values on a coarse grid): the order is similarity desc, then reference index."""
+    rng = np.random.default_rng(12)
+    q, r = _dyadic(rng, 30, 3), _dyadic(rng, 400, 3)
+    for k in (1, 5, 60):
+        idx, sim = match(q, r, k=k, block_rows=7)
+        bi, bs = _brute(q, r, k)
+        np.testing.assert_array_equal(idx, bi)
+        np.testing.assert_array_equal(sim, bs.astype(np.float32))  # exact values: no rounding at all
+
+
+def test_blank_queries_tie_with_every_frame() -> None:
+    rng = np.random.default_rng(15)
+    q, r = _unit(rng, 6, 16), _unit(rng, 50, 16)
+    q[[1, 4]] = 0.0  # blank frames describe to zero vectors
+    idx, sim = match(q, r, k=4)
+    np.testing.assert_array_equal(idx[[1, 4]], [[0, 1, 2, 3]] * 2)
+    assert np.all(sim[[1, 4]] == 0)
+    bi, _bs = _brute(q, r, 4)
+    np.testing.assert_array_equal(idx, bi)
+    mask = np.arange(50) >= 45
+    np.testing.assert_array_equal(match(q, r, k=8, ref_mask=mask)[0][1], [45, 46, 47, 48, 49, -1, -1, -1])
+
+
+def test_database_reuse_and_refusals() -> None:
+    rng = np.random.default_rng(13)
+    q, r = _unit(rng, 5, 8), _unit(rng, 20, 8)
+    db = Database.of(r)
+    np.testing.assert_array_equal(match(q, db, k=3)[0], match(q, r, k=3)[0])
+    mask = rng.random(20) < 0.5
+    masked = Database.of(r, mask)
+    np.testing.assert_array_equal(match(q, masked, k=3)[0], match(q, r, k=3, ref_mask=mask)[0])
+    with pytest.raises(DescriptorError, match="ref_mask"):
+        match(q, db, k=3, ref_mask=mask)
+    with pytest.raises(DescriptorError, match="NaN or infinite"):
+        Database.of(np.where(np.arange(20)[:, None] == 13, np.inf, r))
+    with pytest.raises(DescriptorError, match="too large"):
+        match(q * 1e10, r * 1e10)
+    with pytest.raises(DescriptorError, match="8-d"):
+        match(_unit(rng, 2, 4), db)
+
+
 def test_topk_matches_match() -> None:
     rng = np.random.default_rng(5)
     q, r = _unit(rng, 9, 6), _unit(rng, 21, 6)
@@ -107,7 +189,21 @@ def test_time_per_query() -> None:
     small = time_per_query(q, r, repeats=3, ref_mask=mask)
     assert full.n_refs == 500 and small.n_refs == 50 and full.dim == 32 and full.n_queries == 10
     assert 0 < full.min_seconds_per_query <= full.seconds_per_query < 1.0
-    assert set(full.to_dict()) >= {"seconds_per_query", "n_refs"}
+    assert set(full.to_dict()) >= {"seconds_per_query", "n_refs", "batched"}
+    single = time_per_query(q, Database.of(r), repeats=2, max_queries=4, batched=False)
+    assert not single.batched and single.n_queries == 4 and single.repeats == 2 and full.batched
+
+
+def test_topk_ties_nan_and_group_bound(small_tiles: None) -> None:
+    rng = np.random.default_rng(14)
+    sim = np.round(rng.random((9, 200)) * 8) / 8  # many ties
+    sim[2, :] = np.nan  # no match at all
+    sim[4, 150:] = np.nan
+    idx, val = topk(sim, k=12)
+    filled = np.where(np.isnan(sim), -np.inf, sim)
+    order = np.lexsort((np.broadcast_to(np.arange(200), filled.shape), -filled), axis=-1)[:, :12]
+    np.testing.assert_array_equal(idx, order)
+    np.testing.assert_array_equal(val, np.take_along_axis(filled, order, axis=1).astype(np.float32))
 
 
 @pytest.mark.parametrize("suffix", [".parquet", ".csv"])

@@ -255,6 +255,8 @@ def add_map(sub: Any) -> None:
     p.add_argument("--jpeg-quality", type=int_range(1, 100), help="JPEG quality of raw frames, 1..100 (default 90)")
     p.add_argument("--descriptor", help="reference descriptor kind (thumbnail, dinov2-cls, dinov2-gem, or none)")
     p.add_argument("--descriptors", help="descriptor Parquet path (default: MAP.parquet)")
+    p.add_argument("--descriptor-dtype", choices=["float32", "float16"],
+                   help="storage of the descriptors (default float32; float16 halves the file)")
     p.add_argument("--json", action="store_true", help="print the map summary as JSON")
     p.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC", help="camera topic(s) to map")
     p.add_argument("--stride", type=positive_int, help="consider every n-th frame of each topic (default 1)")
@@ -282,7 +284,8 @@ def map_config(args: argparse.Namespace) -> Any:
         flags["topics"] = tuple(args.topics)
     if args.keep_topic:
         flags["keep_topics"] = tuple(args.keep_topic)
-    for key in ("position_topic", "image_format", "jpeg_quality", "descriptors", "stride", "workers", "candidates"):
+    for key in ("position_topic", "image_format", "jpeg_quality", "descriptors", "descriptor_dtype", "stride", "workers",
+                "candidates"):
         v = getattr(args, key)
         if v is not None:
             flags["descriptors_path" if key == "descriptors" else key] = v
@@ -322,8 +325,9 @@ def cmd_map(args: argparse.Namespace) -> int:
 def add_localize(sub: Any) -> None:
     p = sub.add_parser("localize", help="match every frame of a query log against a map's descriptors",
                        description="Describe each frame of QUERY_LOG like the map was described, find the nearest "
-                                   "map frames (exact search) and write a match table (query frame, best reference "
-                                   "frames with their topic, similarities, confidence) to Parquet or CSV.")
+                                   "map frames (exact search, or an approximate index for big maps) and write a match "
+                                   "table (query frame, best reference frames with their topic, similarities, "
+                                   "confidence) to Parquet or CSV.")
     p.add_argument("map", help="reference descriptors (MAP.parquet from `memlog map`)")
     p.add_argument("query", help="query log (MCAP, ROS 1 .bag or ROS 2 bag directory)")
     p.add_argument("-o", "--output", required=True, help="matches .parquet or .csv (its directory must exist)")
@@ -333,6 +337,14 @@ def add_localize(sub: Any) -> None:
     p.add_argument("--annotate", metavar="OUT.mcap", help="also write the query log with a T/memlog/match channel")
     p.add_argument("--query-descriptors", metavar="PATH",
                    help="cache query descriptors here (reused only when made from the same query log and window)")
+    p.add_argument("--search", choices=["auto", "exact", "ivf"], default="auto",
+                   help="exact search, or ivf: an approximate FAISS index (needs memlog[faiss]); auto (default): "
+                        "ivf for maps of >= 100,000 frames with >= 4 x nlist query frames when FAISS is installed")
+    p.add_argument("--nlist", type=positive_int, help="ivf: cells of the index (default: ~4 sqrt(map frames))")
+    p.add_argument("--nprobe", type=positive_int, help="ivf: cells scanned per query (default: nlist / 64, >= 16)")
+    p.add_argument("--time-search", action="store_true",
+                   help="also time the exact search of the whole map separately (repeated, batched and one query "
+                        "at a time)")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=cmd_localize)
 
@@ -342,11 +354,22 @@ def cmd_localize(args: argparse.Namespace) -> int:
 
     if Path(args.output).suffix.lower() not in (".parquet", ".pq", ".csv"):
         raise ConfigError(f"-o {args.output}: the match table must end in .parquet or .csv")
-    cfg = LocalizeConfig(k=args.k, window=frame_window(args, args.query))
+    from memlog.descriptors.approx import SearchConfig
+
+    try:
+        search = SearchConfig(args.search, args.nlist, args.nprobe)
+    except ConfigError as exc:
+        raise ConfigError(f"--search {args.search}: {exc}") from None
+    cfg = LocalizeConfig(k=args.k, window=frame_window(args, args.query), search=search,
+                         time_search=args.time_search)
     res = localize(args.map, args.query, args.output, cfg, annotate=args.annotate,
                    query_descriptors=args.query_descriptors)
     t = res.timing_map.seconds_per_query
-    info(f"memlog: {res.n_queries} query frames matched against {res.n_map} map frames; {t * 1e3:.3f} ms per query")
+    info(f"memlog: {res.n_queries} query frames matched against {res.n_map} map frames "
+         f"({res.search['method']} search); {t * 1e3:.3f} ms per query")
+    for name, timing in (res.search_timing or {}).items():
+        info(f"memlog: exact search, {name}: {timing.seconds_per_query * 1e3:.3f} ms per query "
+             f"(median of {timing.repeats}, {timing.n_queries} queries)")
     info(f"memlog: wrote {res.output}" + (f" and {res.annotated}" if res.annotated else ""))
     if args.json:
         print(json.dumps(res.to_dict(), indent=2))

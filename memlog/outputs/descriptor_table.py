@@ -2,9 +2,20 @@
 
 One row per frame: ``topic`` (string), ``frame_index``, ``log_time_ns``, ``stamp_ns``
 (int64), the memorability scores ``ms``/``ss``/``es`` (float64, null when not scored),
-``descriptor`` (``fixed_size_list<float32>[dim]``) and optional positions, either
-geographic ``lat``/``lon``/``alt`` or local ``x``/``y``/``z`` (float64, nullable). In numpy
-a null float is NaN (both directions).
+``descriptor`` (``fixed_size_list<float32 not null>[dim] not null``, or ``float16`` elements
+when written with ``dtype="float16"``) and optional positions, either geographic
+``lat``/``lon``/``alt`` or local ``x``/``y``/``z`` (float64, nullable). In numpy a null float
+is NaN (both directions).
+
+Storage: the descriptor column is plain-encoded (no dictionary) and zstd-compressed, in row
+groups of about 16 MiB of descriptors, so a reader can stream it; the topic column is
+dictionary-encoded. :func:`read_descriptors` fills one ``[N, dim]`` float32 matrix batch by
+batch straight from Arrow buffers (no Python objects per row; peak memory about the matrix plus
+one batch). Files written before (nullable, dictionary-encoded, one row group) read the same,
+more slowly.
+
+float16 storage (``dtype="float16"``) halves the file; the file says so in ``memlog.dtype``
+(absent means float32) and is read back to float32. Values beyond float16's range are refused.
 
 The schema metadata records what made the descriptors (``memlog.kind``, ``memlog.version``,
 ``memlog.dim``, ``memlog.model_sha256``, ``memlog.params`` (JSON), ``memlog.memlog_version``)
@@ -31,10 +42,16 @@ from memlog.descriptors.table import POSITION_COLUMNS, SCORE_COLUMNS, Descriptor
 from memlog.errors import DescriptorError
 from memlog.io.atomic import atomic_output
 
-__all__ = ["write_descriptors", "read_descriptors"]
+__all__ = ["write_descriptors", "read_descriptors", "stored_dtype", "DTYPES"]
 
+F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
+
+#: Storage types of the descriptor column: name -> Arrow element type.
+DTYPES: dict[str, pa.DataType] = {"float32": pa.float32(), "float16": pa.float16()}
+ROW_GROUP_BYTES = 1 << 24  # descriptor bytes per Parquet row group (and per read batch): 16 MiB
+FLOAT16_MAX = float(np.finfo(np.float16).max)
 
 
 def _meta_to_schema(meta: DescriptorMeta, extra: Mapping[str, Any], memlog_version: str) -> dict[bytes, bytes]:
@@ -55,29 +72,55 @@ def _meta_to_schema(meta: DescriptorMeta, extra: Mapping[str, Any], memlog_versi
         raise DescriptorError(f"descriptor metadata is not JSON-serialisable: {exc}") from None
 
 
-def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable) -> Path:
-    """Write ``table`` to the Parquet file ``path`` atomically; return the path."""
+def _descriptor_column(desc: F32, dtype: str) -> pa.FixedSizeListArray:
+    """The ``[N, dim]`` matrix as a non-null fixed-size list column of ``dtype`` (no copy for float32)."""
+    if dtype not in DTYPES:
+        raise DescriptorError(f"descriptor dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
+    n, dim = desc.shape
+    if dtype == "float16":
+        big = max(float(desc.max()), -float(desc.min())) if desc.size else 0.0
+        if big > FLOAT16_MAX:
+            raise DescriptorError(f"descriptors cannot be stored as float16: a value of magnitude {big:g} is "
+                                  f"beyond float16's range ({FLOAT16_MAX:g}); store them as float32")
+        desc = desc.astype(np.float16)
+    flat = pa.array(desc.reshape(-1), type=DTYPES[dtype])
+    return pa.FixedSizeListArray.from_arrays(flat, type=pa.list_(pa.field("element", DTYPES[dtype], nullable=False), dim))
+
+
+def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable, *, dtype: str = "float32") -> Path:
+    """Write ``table`` to the Parquet file ``path`` atomically; return the path.
+
+    ``dtype`` is the storage type of the descriptors: ``"float32"`` (exact) or ``"float16"``
+    (half the size; recorded in the metadata, read back to float32; DescriptorError when a
+    value is beyond float16's range).
+    """
     n, dim = table.descriptors.shape
-    flat = pa.array(table.descriptors.reshape(-1), type=pa.float32())
-    arrays: dict[str, pa.Array] = {
-        "topic": pa.array(table.topic, type=pa.string()),
-        "frame_index": pa.array(table.frame_index, type=pa.int64()),
-        "log_time_ns": pa.array(table.log_time_ns, type=pa.int64()),
-        "stamp_ns": pa.array(table.stamp_ns, type=pa.int64()),
-    }
+    fields: list[pa.Field] = []
+    arrays: list[pa.Array] = []
+
+    def add(name: str, arr: pa.Array, nullable: bool = True) -> None:
+        fields.append(pa.field(name, arr.type, nullable=nullable))
+        arrays.append(arr)
+
+    add("topic", pa.array(table.topic, type=pa.string()))
+    for name in ("frame_index", "log_time_ns", "stamp_ns"):
+        add(name, pa.array(getattr(table, name), type=pa.int64()))
     for name in SCORE_COLUMNS:
-        arrays[name] = pa.array(getattr(table, name), type=pa.float64(), from_pandas=True)
-    arrays["descriptor"] = pa.FixedSizeListArray.from_arrays(flat, dim)
+        add(name, pa.array(getattr(table, name), type=pa.float64(), from_pandas=True))
+    add("descriptor", _descriptor_column(table.descriptors, dtype), nullable=False)
     for cols in POSITION_COLUMNS.values():
         for name in cols:
             if name in table.positions:
-                arrays[name] = pa.array(table.positions[name], type=pa.float64(), from_pandas=True)
+                add(name, pa.array(table.positions[name], type=pa.float64(), from_pandas=True))
     schema_meta = _meta_to_schema(table.meta, table.extra, table.memlog_version or __version__)
-    pa_table = pa.table(arrays).replace_schema_metadata(schema_meta)
+    schema_meta[b"memlog.dtype"] = dtype.encode()
+    pa_table = pa.Table.from_arrays(arrays, schema=pa.schema(fields, metadata=schema_meta))
+    item = np.dtype(dtype).itemsize
     target = Path(path)
     try:
         with atomic_output(target) as tmp:
-            pq.write_table(pa_table, tmp, compression="zstd")
+            pq.write_table(pa_table, tmp, compression="zstd", use_dictionary=["topic"],
+                           row_group_size=max(1, ROW_GROUP_BYTES // max(1, dim * item)))
     except OSError as exc:
         raise DescriptorError(f"could not write {target}: {exc}") from None
     return target
@@ -102,24 +145,81 @@ def _meta_from_schema(md: Mapping[bytes, bytes] | None, path: Path) -> tuple[Des
     return meta, extra, version
 
 
-def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
-    """Read a table written by :func:`write_descriptors` (DescriptorError if it is not one)."""
+def stored_dtype(path: str | os.PathLike[str]) -> str:
+    """How the descriptors of the table at ``path`` are stored: ``"float32"`` or ``"float16"``.
+
+    Reads only the file's footer; DescriptorError if it is not a descriptor table or if the
+    metadata and the column disagree.
+    """
     p = Path(path)
     try:
-        table = pq.read_table(p)
+        schema = pq.read_schema(p)
     except (OSError, pa.ArrowException) as exc:
         raise DescriptorError(f"could not read descriptor table {p}: {exc}") from None
-    meta, extra, version = _meta_from_schema(table.schema.metadata, p)
-    required = ("topic", "frame_index", "log_time_ns", "stamp_ns", "descriptor")
-    missing = [c for c in required if c not in table.column_names]
-    if missing:
-        raise DescriptorError(f"{p} lacks column(s) {', '.join(missing)}")
-    desc_col = table.column("descriptor").combine_chunks()
-    if not pa.types.is_fixed_size_list(desc_col.type) or desc_col.type.list_size != meta.dim:
-        raise DescriptorError(f"{p}: descriptor column type {desc_col.type} does not match dim {meta.dim}")
-    if desc_col.null_count:
-        raise DescriptorError(f"{p}: {desc_col.null_count} descriptor(s) are null")
-    desc = desc_col.flatten().to_numpy(zero_copy_only=False).astype(np.float32).reshape(-1, meta.dim)
+    meta, _extra, _version = _meta_from_schema(schema.metadata, p)
+    return _check_descriptor_field(schema, meta.dim, p)
+
+
+def _check_descriptor_field(schema: pa.Schema, dim: int, path: Path) -> str:
+    """The storage dtype of the descriptor column, checked against the metadata's dim and dtype."""
+    if "descriptor" not in schema.names:
+        raise DescriptorError(f"{path} lacks column(s) descriptor")
+    typ = schema.field("descriptor").type
+    if not pa.types.is_fixed_size_list(typ) or typ.list_size != dim:
+        raise DescriptorError(f"{path}: descriptor column type {typ} does not match dim {dim}")
+    stored = next((name for name, t in DTYPES.items() if typ.value_type == t), None)
+    if stored is None:
+        raise DescriptorError(f"{path}: descriptor elements are {typ.value_type}; expected float32 or float16")
+    md = schema.metadata or {}
+    said = md.get(b"memlog.dtype", b"float32").decode(errors="replace")
+    if said != stored:
+        raise DescriptorError(f"{path}: the metadata says the descriptors are {said} but the column holds {stored}")
+    return stored
+
+
+def _read_matrix(pf: pq.ParquetFile, n: int, dim: int, path: Path) -> F32:
+    """The descriptor column as one ``[n, dim]`` float32 matrix, filled batch by batch."""
+    out = np.empty((n, dim), dtype=np.float32)
+    rows = max(1, ROW_GROUP_BYTES // (4 * max(1, dim)))
+    start = 0
+    # one thread, no pre-buffering: Arrow then holds about one row group (measured fastest here too)
+    for batch in pf.iter_batches(batch_size=rows, columns=["descriptor"], use_threads=False):
+        col = batch.column(0)
+        if col.null_count:
+            raise DescriptorError(f"{path}: {col.null_count} descriptor(s) are null")
+        values = col.flatten()  # honours the slice offset; no copy
+        if values.null_count:
+            raise DescriptorError(f"{path}: descriptors hold {values.null_count} null value(s)")
+        m = len(col)
+        if start + m > n:
+            raise DescriptorError(f"{path}: more descriptor rows than the file's {n} rows")
+        out[start : start + m] = values.to_numpy(zero_copy_only=True).reshape(m, dim)
+        start += m
+    if start != n:
+        raise DescriptorError(f"{path}: read {start} descriptor rows of {n}")
+    return out
+
+
+def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
+    """Read a table written by :func:`write_descriptors` (DescriptorError if it is not one).
+
+    The descriptors come back as one float32 matrix, whatever their storage dtype.
+    """
+    p = Path(path)
+    try:
+        with pq.ParquetFile(p, pre_buffer=False) as pf:
+            schema = pf.schema_arrow
+            meta, extra, version = _meta_from_schema(schema.metadata, p)
+            required = ("topic", "frame_index", "log_time_ns", "stamp_ns", "descriptor")
+            missing = [c for c in required if c not in schema.names]
+            if missing:
+                raise DescriptorError(f"{p} lacks column(s) {', '.join(missing)}")
+            _check_descriptor_field(schema, meta.dim, p)
+            desc = _read_matrix(pf, pf.metadata.num_rows, meta.dim, p)
+        table = pq.read_table(p, columns=[c for c in schema.names if c != "descriptor"], read_dictionary=["topic"])
+        pa.default_memory_pool().release_unused()  # hand the batches' memory back before the caller's work
+    except (OSError, pa.ArrowException) as exc:
+        raise DescriptorError(f"could not read descriptor table {p}: {exc}") from None
 
     def floats(name: str) -> F64:
         arr: F64 = table.column(name).to_numpy().astype(np.float64)  # nulls become NaN
@@ -134,7 +234,7 @@ def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
 
     positions = {c: floats(c) for cols in POSITION_COLUMNS.values() for c in cols if c in table.column_names}
     return DescriptorTable(
-        topic=[str(t) for t in table.column("topic").to_pylist()],
+        topic=_strings(table.column("topic"), p),
         frame_index=ints("frame_index"),
         log_time_ns=ints("log_time_ns"),
         stamp_ns=ints("stamp_ns"),
@@ -147,3 +247,17 @@ def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
         extra=extra,
         memlog_version=version or None,
     )
+
+
+def _strings(col: pa.ChunkedArray, path: Path) -> list[str]:
+    """A dictionary-encoded string column as a list of str, one Python object per distinct value."""
+    if col.null_count:
+        raise DescriptorError(f"{path}: column topic has nulls")
+    out: list[str] = []
+    for chunk in col.chunks:
+        if pa.types.is_dictionary(chunk.type):
+            words = np.array(chunk.dictionary.to_pylist(), dtype=object)
+            out.extend(words[chunk.indices.to_numpy(zero_copy_only=False)].tolist())
+        else:
+            out.extend(str(t) for t in chunk.to_pylist())
+    return out

@@ -1,17 +1,22 @@
 """Pipeline step ``localize``: match a query log against a map's reference descriptors.
 
 :func:`localize` describes the query frames the way the map was described, finds the best map
-frames of every query frame (exact search), writes the match table (Parquet or CSV, with the
-map topic of each match and the map file, descriptor and settings as metadata), optionally an
-annotated copy of the query log with a ``T/memlog/match`` channel, and times matching one query
-against the map. Query descriptors can be cached (``query_descriptors``): the cache is reused
-only when it was made from the same query log (path, size, modification time), window and
-descriptor, and the run says whether it was reused or refused.
+frames of every query frame, writes the match table (Parquet or CSV, with the map topic of each
+match and the map file, descriptor and settings as metadata) and optionally an annotated copy
+of the query log with a ``T/memlog/match`` channel. All query frames are matched together, in
+blocks (:func:`memlog.descriptors.search.match`), or through an approximate FAISS index for big
+maps (:mod:`memlog.descriptors.approx`; ``search`` picks, ``auto`` by map size and query count).
+The search is timed as it runs (``timing_map``: wall time per query); ``time_search`` adds a
+separate, repeated timing (batched and one query at a time) for benchmarks. Query descriptors
+can be cached (``query_descriptors``): the cache is reused only when it was made from the same
+query log (path, size, modification time), window and descriptor, and the run says whether it
+was reused or refused.
 """
 
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,14 +26,15 @@ import numpy as np
 from memlog.descriptors.base import Describer, check_compatible
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import make_describer
-from memlog.descriptors.search import QueryTiming, confidence, match, time_per_query
+from memlog.descriptors.approx import IVFIndex, SearchConfig, choose
+from memlog.descriptors.search import Database, QueryTiming, confidence, match, time_per_query
 from memlog.descriptors.table import DescriptorTable
 from memlog.errors import ConfigError, DescriptorError
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow
 from memlog.io.identity import same_identity
 from memlog.io.records import ReadReport
-from memlog.outputs.descriptor_table import read_descriptors, write_descriptors
+from memlog.outputs.descriptor_table import read_descriptors, stored_dtype, write_descriptors
 from memlog.outputs.matches import write_match_log, write_matches
 from memlog.progress import info
 
@@ -37,14 +43,19 @@ __all__ = ["localize", "LocalizeConfig", "LocalizeResult", "describer_for"]
 
 @dataclass(frozen=True)
 class LocalizeConfig:
-    """``k`` reference frames per query; which query frames (``window``)."""
+    """``k`` reference frames per query; which query frames (``window``); how to search the map
+    (``search``); ``time_search``: also time the search separately (repeated; for benchmarks)."""
 
     k: int = 5
     window: FrameWindow = FrameWindow()
+    search: SearchConfig = SearchConfig()
+    time_search: bool = False
 
     def __post_init__(self) -> None:
         if isinstance(self.k, bool) or not isinstance(self.k, int) or self.k < 1:
             raise ConfigError(f"k must be an integer >= 1, got {self.k!r}")
+        if not isinstance(self.search, SearchConfig):
+            raise ConfigError(f"search must be a SearchConfig, got {self.search!r}")
 
 
 def describer_for(table: DescriptorTable) -> Describer:
@@ -66,11 +77,15 @@ class LocalizeResult:
     annotated: Path | None
     query_descriptors_reused: bool = False
     reports: list[ReadReport] = field(default_factory=list)
+    search: dict[str, Any] = field(default_factory=dict)
+    search_timing: dict[str, QueryTiming] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "output": str(self.output), "n_queries": self.n_queries, "n_map": self.n_map, "k": self.k,
             "match_seconds_per_query": self.timing_map.to_dict(),
+            "search": self.search,
+            "search_timing": {k: v.to_dict() for k, v in self.search_timing.items()} if self.search_timing else None,
             "annotated": str(self.annotated) if self.annotated else None,
             "query_descriptors_reused": self.query_descriptors_reused,
         }
@@ -121,6 +136,7 @@ def localize(
     if query_descriptors is not None:
         check_output(query_descriptors, [*inputs, output] + ([annotate] if annotate else []),
                      flag="--query-descriptors")
+    cfg.search.require_faiss()
     ref = read_descriptors(map_descriptors)
     if len(ref) == 0:
         raise DescriptorError(f"{map_descriptors}: the map has no descriptors")
@@ -132,7 +148,23 @@ def localize(
         reports.append(report)
         if query_descriptors is not None:
             write_descriptors(query_descriptors, qt)
-    idx, sims = match(qt.descriptors, ref.descriptors, k=min(cfg.k, len(ref)))
+    k = min(cfg.k, len(ref))
+    db = Database.of(ref.descriptors)
+    # what the run records about its search (the IVF settings are added below)
+    search: dict[str, Any] = {"method": choose(cfg.search, len(ref), len(qt)), "asked": cfg.search.method,
+                              "map_dtype": stored_dtype(map_descriptors)}
+    t0 = time.perf_counter()
+    if search["method"] == "ivf":
+        index = IVFIndex(db, cfg.search.nlist)
+        search["nlist"] = index.nlist
+        search["nprobe"], search["rerank"] = index.settings(k, cfg.search.nprobe, cfg.search.rerank)
+        search["build_seconds"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        idx, sims = index.search(qt.descriptors, k, cfg.search.nprobe, cfg.search.rerank)
+    else:
+        idx, sims = match(qt.descriptors, db, k=k)
+    seconds = (time.perf_counter() - t0) / max(1, len(qt))
+    timing_map = QueryTiming(seconds, seconds, len(ref), ref.meta.dim, len(qt), 1)
     conf = confidence(sims)
     out = write_matches(
         output, idx, sims, query_ids=qt.frame_index, ref_ids=ref.frame_index,
@@ -140,10 +172,17 @@ def localize(
                        "confidence": conf.best, "margin": conf.margin, "ratio": conf.ratio},
         ref_columns={"ref_topic": np.array(ref.topic), "ref_log_time_ns": ref.log_time_ns},
         metadata={"map": str(Path(map_descriptors).resolve()), "query_log": str(Path(query_log).resolve()),
-                  "descriptor": ref.meta.to_dict(), "k": cfg.k, "window": qt.extra.get("window")},
+                  "descriptor": ref.meta.to_dict(), "k": cfg.k, "window": qt.extra.get("window"),
+                  "search": search},
     )
-    timing_map = time_per_query(qt.descriptors, ref.descriptors, repeats=3)
+    search_timing = None
+    if cfg.time_search and len(qt):
+        # the exact search of the whole map, repeated: batched as above, and one query at a time
+        search_timing = {"batched": time_per_query(qt.descriptors, db, repeats=3, k=k),
+                         "single": time_per_query(qt.descriptors, db, repeats=1, k=k, max_queries=10, batched=False)}
     annotated = None
     if annotate is not None:
         annotated = write_match_log(query_log, annotate, qt, ref, idx, sims, conf.best)
-    return LocalizeResult(out, len(qt), len(ref), cfg.k, timing_map, annotated, reused, reports)
+    return LocalizeResult(out, len(qt), len(ref), cfg.k, timing_map, annotated, reused, reports, search,
+                          search_timing)
+

@@ -71,6 +71,7 @@ class MapConfig:
     positions (default: the first found); ``image_format``/``jpeg_quality``: how raw frames
     are encoded; ``descriptor``: reference descriptor kind (None: no descriptors);
     ``descriptors_path``: the Parquet file (default: the map path with ``.parquet``);
+    ``descriptor_dtype``: how it stores them, float32 or float16 (half the size; read back as float32);
     ``workers``: processes scoring frames; ``candidates``: with segment selection, score at most
     this many frames per segment with ResMem (the best by their cheap scores, spread over the
     segment; approximate) instead of exactly the frames that can still win (default); ``stride``:
@@ -86,11 +87,14 @@ class MapConfig:
     jpeg_quality: int = 90
     descriptor: str | None = "thumbnail"
     descriptors_path: str | None = None
+    descriptor_dtype: Literal["float32", "float16"] = "float32"
     workers: int = 1
     candidates: int | None = None
     stride: int = 1
 
     def __post_init__(self) -> None:
+        if self.descriptor_dtype not in ("float32", "float16"):
+            raise ConfigError(f"descriptor_dtype must be float32 or float16, got {self.descriptor_dtype!r}")
         for name, low in (("workers", 1), ("candidates", 1), ("stride", 1)):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < low):
@@ -462,7 +466,8 @@ def make_map(
             frames, desc = describing.result()
             extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
                      "keep_fraction": sel_cfg.keep_fraction}
-            write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra))
+            write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra),
+                              dtype=cfg.descriptor_dtype)
             result.descriptors = dpath
     result.seconds = time.perf_counter() - t0
     return result
