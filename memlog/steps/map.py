@@ -386,10 +386,12 @@ def make_map(
     config: MapConfig | None = None,
     *,
     scores: str | os.PathLike[str] | Records | None = None,
+    executor: Executor | None = None,
 ) -> MapResult:
     """Build the memorable-map log of ``log`` (see module doc). ``scores``: an annotated MCAP of
-    ``memlog score`` (or its records) to reuse instead of scoring. Raises :class:`EmptyMapError`
-    when nothing would be kept."""
+    ``memlog score`` (or its records) to reuse instead of scoring; ``executor``: where scoring jobs
+    run (default: ``config.workers`` local processes). Raises :class:`EmptyMapError` when nothing
+    would be kept."""
     t0 = time.perf_counter()
     cfg = config or MapConfig()
     sel_cfg = cfg.select
@@ -407,14 +409,15 @@ def make_map(
             raise ConfigError(f"--keep-topic: {reader.path} has no topic {', '.join(sorted(missing_keep))} "
                               f"(topics: {', '.join(reader.topics())})")
         track = read_track(reader, cfg.position_topic)  # None when the log has no position topic
-        ex = make_executor(cfg.workers)
+        ex = executor or make_executor(cfg.workers)
         try:
             if scores is None and _stageable(cfg):
                 recs_by_topic, selections, crops = _staged(str(log), reader, cfg, cams, track, ex)
             else:
                 recs_by_topic, selections, crops = _full(str(log), reader, cfg, cams, track, ex, scores)
         finally:
-            ex.close()
+            if executor is None:
+                ex.close()
         cams = [t for t in cams if t in recs_by_topic] if cfg.topics is None else cams
         kept = {t: {int(i) for i in s.index[s.keep]} for t, s in selections.items()}
         n_in = sum(len(s.index) for s in selections.values())
