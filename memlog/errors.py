@@ -14,6 +14,7 @@ __all__ = [
     "UsageError",
     "ConfigError",
     "OutputPathError",
+    "TopicError",
     "LogReadError",
     "ImageDecodeError",
     "LogWriteError",
@@ -39,6 +40,10 @@ class ConfigError(UsageError):
 
 class OutputPathError(UsageError):
     """An output path cannot be used (missing directory, a directory, or one of the inputs)."""
+
+
+class TopicError(UsageError):
+    """A topic named on the command line (or in a config) is not in the log, or is not a camera topic."""
 
 
 class LogReadError(MemlogError):

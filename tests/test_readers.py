@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from memlog.errors import ImageDecodeError, LogReadError
+from memlog.errors import ImageDecodeError, TopicError
 from memlog.io import McapLogWriter, open_log
 from memlog.io.camera import camera_kind
 from tests.conftest import FIXTURES, SHARED_LOGS, shared
@@ -105,9 +105,9 @@ def test_time_window_and_stride_keep_topic_indices() -> None:
         assert [f.index for f in win] == [3, 4, 5]
         strided = list(log.frames(["/camera/image/compressed"], stride=3))
         assert [f.index for f in strided] == [0, 3, 6]
-        with pytest.raises(LogReadError, match="not a camera topic"):
+        with pytest.raises(TopicError, match="not a camera topic"):
             list(log.frames(["/gps/fix"]))
-        with pytest.raises(LogReadError, match="no topic /nope"):
+        with pytest.raises(TopicError, match="no topic /nope"):
             list(log.frames(["/nope"]))
 
 

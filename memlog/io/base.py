@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
 
-from memlog.errors import ConfigError, ImageDecodeError, LogReadError
+from memlog.errors import ConfigError, ImageDecodeError, TopicError
 from memlog.io.camera import camera_kind, extract_image
 from memlog.io.decoders import UnsupportedEncoding, make_deserializer
 from memlog.io.frame import Frame
@@ -157,7 +157,7 @@ class LogReader(ABC):
         if wanted is not None:
             missing = wanted - set(self.topics())
             if missing:
-                raise LogReadError(
+                raise TopicError(
                     f"{self.path}: no topic {', '.join(sorted(missing))} (topics: {', '.join(self.topics())})"
                 )
         it = self._iter_messages(wanted, start_ns, end_ns, log_time_order)
@@ -228,7 +228,7 @@ class LogReader(ABC):
 
     def check_camera_topics(self, topics: Iterable[str] | None) -> list[str]:
         """The camera topics to stream: ``topics`` (checked: each must be a camera topic of
-        this log) or, when None, every camera topic. :class:`LogReadError` names what is wrong."""
+        this log) or, when None, every camera topic. :class:`TopicError` names what is wrong."""
         cams = self.camera_topics()
         if topics is None:
             return cams
@@ -237,8 +237,8 @@ class LogReader(ABC):
         if not_cam:
             bad = ", ".join(sorted(not_cam))
             if not_cam - set(self.topics()):
-                raise LogReadError(f"{self.path}: no topic {bad} (camera topics: {', '.join(cams) or 'none'})")
-            raise LogReadError(f"{self.path}: topic {bad} is not a camera topic (camera topics: {', '.join(cams) or 'none'})")
+                raise TopicError(f"{self.path}: no topic {bad} (camera topics: {', '.join(cams) or 'none'})")
+            raise TopicError(f"{self.path}: topic {bad} is not a camera topic (camera topics: {', '.join(cams) or 'none'})")
         return wanted
 
     def count_frames(self, window: FrameWindow) -> int | None:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from memlog.errors import LogReadError
+from memlog.errors import TopicError
 from memlog.io.base import LogReader
 from memlog.io.camera import normalize_msgtype
 from memlog.io.decoders import make_deserializer
@@ -150,7 +150,7 @@ def read_track(reader: LogReader, topic: str | None = None) -> PositionTrack | N
     else:
         kinds = dict(topics)
         if topic not in kinds:
-            raise LogReadError(f"{reader.path}: topic {topic} carries no positions (NavSatFix, pose or odometry)")
+            raise TopicError(f"--position-topic: {reader.path}: topic {topic} carries no positions (NavSatFix, pose or odometry)")
         kind = kinds[topic]
     decoders: dict[int, Any] = {}
     ts: list[int] = []

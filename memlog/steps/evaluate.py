@@ -235,6 +235,8 @@ def evaluate(
     ref_topic, n_ref = _frame_counts(reference, cfg.reference_topic)
     q_topic, n_q = _frame_counts(query, cfg.query_topic)
     truth_frames: list[set[int]] | None = None
+    if truth is not None and not Path(truth).is_file():
+        raise ConfigError(f"--truth {truth}: no such file")
     if truth is not None:
         truth_frames = parse_truth(truth)
         _check_truth_fits(truth_frames, str(truth), n_q, n_ref)
@@ -285,7 +287,8 @@ def evaluate(
         res, mo, po = _evaluate_mask(ref_t, q_t, truth_rows, m, full_idx, full_sim, cfg)
         results[name] = res
         per_variant[name] = (mo, po)
-    results["memorable"].update({"thresholds": sel.thresholds, "select": cfg.select.mode,
+    results["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
+                                 "select": cfg.select.mode,
                                  "keep_fraction": cfg.select.keep_fraction, "gaps": len(sel.gaps)})
     rand = [_evaluate_mask(ref_t, q_t, truth_rows, m, full_idx, full_sim, cfg)[0]
             for m in random_masks(len(ref_t), kk, range(cfg.seeds))]
