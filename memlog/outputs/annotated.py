@@ -87,10 +87,13 @@ def annotations_message(frame: Frame, s: FrameScore, config: ScoreConfig) -> dic
         })
     f = fmt3
     verdict = "KEEP" if s.selected else f"drop ({s.rejected_by})"
-    bound = "" if s.ms_exact or s.ms is None else ("≥" if s.selected or s.rejected_by != "memorability" else "<")
+    if s.ms is None and s.ms_low is not None and s.ms_high is not None:  # only bounded (stopped early)
+        ms_text = f"≥{f(s.ms_low)}" if s.rejected_by != "memorability" else f"<{f(s.ms_high)}"
+    else:
+        ms_text = ("~" if not s.ms_exact and s.ms is not None else "") + f(s.ms)
     texts.append({
         "timestamp": ts, "position": {"x": 4.0, "y": 4.0},
-        "text": f"MS {bound}{f(s.ms)}  SS {f(s.ss)}  ES {f(s.es)}  {verdict}",
+        "text": f"MS {ms_text}  SS {f(s.ss)}  ES {f(s.es)}  {verdict}",
         "font_size": max(10.0, h / 24), "text_color": _color(0.2, 1.0, 0.2) if s.selected else _color(1.0, 0.6, 0.2),
         "background_color": _color(0, 0, 0, 0.6), "metadata": [],
     })

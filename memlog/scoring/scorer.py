@@ -93,6 +93,7 @@ class FrameScore:
     height: int = 0
     maps: dict[str, npt.NDArray[Any]] = field(default_factory=dict)
     shared_from: int | None = None  # frame index whose scores these are (a duplicate frame)
+    crops_needed: int = 0  # crops of non-zero weight: what scoring MS fully runs (not in records)
 
     def to_json(self) -> dict[str, Any]:
         m = None
@@ -268,6 +269,9 @@ class Scorer:
         timing = dict(cheap.timing_ms)
         res = FrameScore(ms=None, ss=cheap.ss, es=cheap.es, selected=False, rejected_by=cheap.rejected_by,
                          detections=cheap.detections, timing_ms=timing, width=cheap.width, height=cheap.height)
+        from memlog.models.resmem import crop_weights
+
+        res.crops_needed = int(np.count_nonzero(crop_weights(cheap.static_map) > 0))
         need_m = cheap.rejected_by is None or c.all_scores or c.mode == "paper"
         if need_m:
             t0 = time.perf_counter()
@@ -285,9 +289,8 @@ class Scorer:
             res.ms_low, res.ms_high = r.ms_low * scale, r.ms_high * scale
             if r.ms is not None:  # exact value, or fast mode's estimate
                 res.ms = r.ms * scale
-            else:  # exact mode stopped early: the bound that decided
-                res.ms = res.ms_low if r.passed else res.ms_high
-            passed = r.passed if r.passed is not None else (res.ms >= c.mt)
+            # else: the crop loop stopped early; MS is unknown, ms_low/ms_high bound it
+            passed = r.passed if r.passed is not None else (res.ms is not None and res.ms >= c.mt)
             if res.rejected_by is None and not passed:
                 res.rejected_by = "memorability"
             if c.maps:

@@ -60,6 +60,7 @@ class TopicSummary:
     rejected: dict[str, int] = field(default_factory=lambda: {s: 0 for s in STAGES})
     time_ms: dict[str, float] = field(default_factory=dict)
     crops_run: int = 0
+    crops_full: int = 0
     shared: int = 0
 
     def add(self, s: FrameScore | None) -> None:
@@ -69,6 +70,7 @@ class TopicSummary:
             return
         self.scored += 1
         self.selected += int(s.selected)
+        self.crops_full += s.crops_needed
         if s.shared_from is None:  # a repeated frame carries its original's counts: not run again
             self.crops_run += s.crops_scored
         else:
@@ -83,7 +85,7 @@ class TopicSummary:
         return {
             "frames_seen": self.frames_seen, "scored": self.scored, "selected": self.selected,
             "undecodable": self.undecodable, "rejected": dict(self.rejected), "resmem_crops_run": self.crops_run,
-            "shared_with_previous_frame": self.shared, "mean_ms_per_frame": mean,
+            "resmem_crops_full_scoring": self.crops_full, "shared_with_previous_frame": self.shared, "mean_ms_per_frame": mean,
         }
 
 
