@@ -6,6 +6,7 @@
     python benchmarks/run.py score           # scorer: ms per stage, paper-literal vs exact vs fast
     python benchmarks/run.py descriptors     # descriptor extraction and matching
     python benchmarks/run.py search          # localization against a 100,000-frame map (search_bench.py)
+    python benchmarks/run.py map             # memlog map end to end: all scores vs staged vs shortlists, workers
 
 Each case runs in a fresh subprocess so its peak RSS (ru_maxrss) is its own.
 """
@@ -177,6 +178,46 @@ def case_score(log: str, mode: str, limit: str, thresholds: str = "") -> dict[st
             "peak_mb": _peak_mb(), "base_mb": base}
 
 
+def case_map(log: str, variant: str, stride: str, fraction: str, workers: str) -> dict[str, Any]:
+    """``memlog map`` end to end (descriptors off) on every ``stride``-th frame of ``log``."""
+    from memlog.scoring.config import ScoreConfig
+    from memlog.selection.config import SelectionConfig
+    from memlog.steps.map import MapConfig, make_map
+
+    score_cfg = {"all-scores": ScoreConfig(all_scores=True), "fast-all-scores": ScoreConfig(all_scores=True, mode="fast")}
+    k = int(variant[1:]) if variant.startswith("K") else None
+    cfg = MapConfig(score=score_cfg.get(variant, ScoreConfig()), select=SelectionConfig(keep_fraction=float(fraction)),
+                    descriptor=None, stride=int(stride), workers=int(workers), candidates=k)
+    base = _peak_mb()
+    with tempfile.TemporaryDirectory() as d:
+        t0 = time.perf_counter()
+        res = make_map(SHARED / log, Path(d) / "map.mcap", cfg)
+        dt = time.perf_counter() - t0
+    kept = {t: s.kept_indices.tolist() for t, s in res.selections.items()}
+    return {"frames": res.frames_in, "kept": res.frames_kept, "seconds": dt, "crops_run": res.crops_run,
+            "crops_full": res.crops_full, "kept_indices": kept, "peak_mb": _peak_mb(), "base_mb": base}
+
+
+def bench_map(log: str, stride: int, fraction: float) -> None:
+    """All scores vs the staged exact selection vs shortlists, 1 and 2 worker processes."""
+    rows = []
+    ref = None
+    for variant, workers in (("all-scores", 1), ("staged", 1), ("staged", 2), ("K1", 1), ("K2", 1), ("K4", 1),
+                             ("fast-all-scores", 1)):
+        if variant.startswith("fast") and not _fast_ready():
+            continue
+        r = _case("map", log, variant, str(stride), str(fraction), str(workers))
+        if ref is None:
+            ref = r
+        same = "yes" if r["kept_indices"] == ref["kept_indices"] else "no"
+        rows.append([variant + ("" if workers == 1 else f", {workers} processes"), r["frames"], r["kept"],
+                     f"{r['frames'] / r['seconds']:.3f}", f"{ref['seconds'] / r['seconds']:.1f}x",
+                     f"{(r['crops_run'] or 0) / r['frames']:.1f}", same, f"{r['peak_mb']:.0f}"])
+    print(f"\n### memlog map on {log} (every {stride}th frame, --keep-fraction {fraction:g})\n")
+    print(table(rows, ["scoring", "frames", "kept", "frames/s", "vs all scores", "ResMem crops / frame",
+                       "same map as all scores", "peak RSS MB"]))
+
+
 # -- tables ------------------------------------------------------------------------------
 def table(rows: list[list[Any]], header: list[str]) -> str:
     cells = [[str(c) for c in r] for r in [header, *rows]]
@@ -263,6 +304,7 @@ def main() -> int:
     ap.add_argument("what", nargs="*", default=["io", "score", "descriptors"])
     ap.add_argument("--frames", type=int, default=12, help="frames per log for the scorer table")
     ap.add_argument("--big-mb", type=int, default=1000, help="size of the synthetic large log for the memory table")
+    ap.add_argument("--map-stride", type=int, default=4, help="every n-th Nordland frame for the map table")
     ap.add_argument("--case", nargs="+", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.case:
@@ -274,6 +316,8 @@ def main() -> int:
         bench_score(a.frames)
     if "descriptors" in a.what:
         bench_descriptors()
+    if "map" in a.what:  # not in the default set: about an hour on two cores
+        bench_map("nordland_dev_summer.mcap", a.map_stride, 0.1)
     if "search" in a.what:  # not in the default set: it builds a ~1.1 GB map in /tmp once
         subprocess.run([sys.executable, str(Path(__file__).with_name("search_bench.py"))], check=True)
     return 0
