@@ -576,6 +576,32 @@ def test_fast_mode_agrees_when_surrogate_within_bound(scorer: Memorability, fram
         FastMemorability(surrogate, surrogate, 1.5)
 
 
+def test_fast_mode_whole_frame_tier(scorer: Memorability, frames: list[Array]) -> None:
+    """Tier 0: one inference on the whole frame settles thresholds further than the fit's error
+    from its estimate (the same decision as exact mode when the error bound holds); nearer ones
+    fall through to the crops. Frames with dynamic pixels skip it."""
+    from memlog.models.quantize import frame_crop
+
+    cached = _CachingSession(scorer.session)
+    surrogate = _with_session(cached, 25)
+    frame = frames[2]
+    ms = memorability_score(memorability_matrix(cached, crops_from_frame(frame)))
+    whole = float(surrogate.score_crops(frame_crop(frame))[0])
+    fit = {"a": 0.5, "b": 0.4}
+    est = 0.5 * whole + 0.4
+    delta = abs(est - ms) + 0.01  # a bound that holds for this frame
+    fast = FastMemorability(surrogate, _with_session(cached, 3), 0.2, 0.1, frame_fit={**fit, "delta": delta})
+    for t in (est - delta - 0.05, est + delta + 0.05):
+        r = fast(frame, threshold=t)
+        assert r.n_surrogate == 1 and r.n_scored == 0 and r.passed == (ms >= t)
+        assert r.ms_low - 1e-9 <= ms <= r.ms_high + 1e-9
+    r = fast(frame, threshold=est)  # within the fit's error: the crops decide
+    assert r.n_surrogate == 25 and r.passed == (ms >= est)
+    s = np.ones((FRAME, FRAME), np.uint8)
+    s[:100, :100] = 0
+    assert fast(frame, s, threshold=est + delta + 0.05).n_surrogate > 1
+
+
 def test_fast_mode_without_refinement_trusts_the_surrogate(scorer: Memorability, frames: list[Array]) -> None:
     """refine=False: the surrogate's (bias-corrected) MS decides alone, the exact model never runs."""
     cached = _CachingSession(scorer.session)

@@ -32,7 +32,7 @@ from memlog.models.quantize import (
     QUANTIZER_VERSION,
     SETTINGS,
     calibration_crops,
-    prepare_resmem_int8,
+    prepare_fast_models,
     quantize_resmem,
     resmem_int8_bounds,
     resmem_int8_path,
@@ -80,7 +80,7 @@ def fp32_path() -> Path:
 
 @pytest.fixture(scope="session")
 def int8_path(fp32_path: Path) -> Path:
-    return prepare_resmem_int8(quiet=True)
+    return prepare_fast_models(quiet=True)
 
 
 def _session(path: Path) -> ort.InferenceSession:
@@ -332,3 +332,27 @@ def test_stale_model_raises(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fp3
     target_side.unlink()
     with pytest.raises(ModelError, match="memlog models prepare"):
         resmem_int8_path()
+
+
+def test_whole_frame_fit_bounds_held_out_frames(int8_path: Path, fp32_path: Path) -> None:
+    """The whole-frame estimate's recorded error covers held-out frames recomputed here, and fast
+    mode's first tier uses exactly that fit."""
+    import json
+
+    from memlog.models import cache
+    from memlog.models.quantize import FRAME_FIT_FILE, _frames, frame_crop, frame_fit
+    from memlog.models.resmem import crop_weights, run_crops
+    from memlog.models.runtime import make_session
+
+    side = json.loads(cache.model_path(FRAME_FIT_FILE).read_text())
+    fit = frame_fit()
+    assert fit == {"a": side["a"], "b": side["b"], "delta": side["delta"]}
+    worst = max(side["held_out_max_error"], side["fit_max_error"])
+    assert side["delta"] == pytest.approx(min(1.0, 1.5 * worst)) and side["n_held_out"] >= 10
+    s32, s8 = make_session(fp32_path, device="cpu"), make_session(int8_path, device="cpu")
+    w = crop_weights(None).reshape(-1)
+    for f in _frames(12, held_out=True)[:3]:
+        f1135 = cv2.resize(f, (FRAME, FRAME), interpolation=cv2.INTER_LINEAR)
+        ms = float(np.dot(w, run_crops(s32, crops_from_frame(f1135)).astype(np.float64)))
+        est = fit["a"] * float(run_crops(s8, frame_crop(f1135))[0]) + fit["b"]
+        assert abs(est - ms) <= side["held_out_max_error"] + 1e-6

@@ -34,6 +34,7 @@ import contextlib
 import functools
 import hashlib
 import io
+import json
 import sys
 import tempfile
 import time
@@ -463,3 +464,108 @@ def prepare_resmem_int8(force: bool = False, quiet: bool = False, n_images: int 
     return quantize_resmem(fp32, out, crops, calibration=calibration_description(n_images), quiet=quiet)
 
 
+def prepare_fast_models(force: bool = False, quiet: bool = False) -> Path:
+    """Everything fast mode needs: the int8 model and its whole-frame fit; returns the int8 path."""
+    out = prepare_resmem_int8(force=force, quiet=quiet)
+    prepare_frame_fit(force=force, quiet=quiet)
+    return out
+
+
+
+
+# ---------------------------------------------------------------------------------------------
+# the whole-frame estimate (fast mode's first tier)
+
+#: Bump when the fit below changes: cached fits are redone.
+FRAME_FIT_VERSION = "2"
+FRAME_FIT_FILE = f"resmem-{RESMEM_VERSION}-int8-frame.json"
+
+
+def frame_crop(bgr: npt.NDArray[Any]) -> F32:
+    """The whole frame as one ResMem input: [1,3,227,227] RGB /255 (``cv2.INTER_AREA``)."""
+    import cv2
+
+    small = cv2.resize(bgr, (CROP, CROP), interpolation=cv2.INTER_AREA)[:, :, ::-1]
+    return np.ascontiguousarray(small.transpose(2, 0, 1)[None], dtype=np.float32) / np.float32(255.0)
+
+
+def _frames(n_calibration: int, held_out: bool, widths: tuple[int, ...] = (160, 64)) -> list[npt.NDArray[Any]]:
+    """The photos used for the fit (the calibration photos at full and low resolution) or held
+    out from it (the others), as camera frames."""
+    import cv2
+
+    out: list[npt.NDArray[Any]] = []
+    for i, name in enumerate(CALIBRATION_IMAGES):
+        if (i >= n_calibration) != held_out:
+            continue
+        img = _load_bgr(name)
+        h, w = img.shape[:2]
+        out.append(img)
+        out += [cv2.resize(img, (wd, max(1, round(h * wd / w))), interpolation=cv2.INTER_AREA) for wd in widths]
+    return out
+
+
+def frame_fit_pins() -> dict[str, Any]:
+    """What a cached whole-frame fit must have been made from: this fit version and the int8 model."""
+    return {"fit_version": FRAME_FIT_VERSION,
+            "int8_sha256": cache.recorded_sha256(cache.model_path(INT8_FILE)) or "missing"}
+
+
+def prepare_frame_fit(force: bool = False, quiet: bool = False, n_calibration: int = DEFAULT_N_IMAGES) -> Path:
+    """Fit fast mode's whole-frame estimate and cache it (JSON, with its cache sidecar).
+
+    The int8 model scores the whole frame shrunk to one 227 x 227 input (:func:`frame_crop`);
+    MS of an all-static frame is predicted as ``a * score + b``, fitted by least squares on the
+    calibration photos (at full resolution and shrunk like low-resolution cameras) against their
+    fp32 MS. ``delta`` is ``SETTINGS["bound_factor"]`` times the largest error on the fitted or
+    the held-out photos, whichever is larger: fast mode lets the estimate decide only frames whose estimate is further than
+    ``delta`` from MT, so one inference instead of 25 settles frames far from the threshold.
+    """
+    out = cache.model_path(FRAME_FIT_FILE)
+    if not force and cache.is_ready(out, frame_fit_pins()):
+        return out
+    fp32, int8 = resmem_onnx_path(), resmem_int8_path()
+    if not quiet:
+        print("memlog: fitting fast mode's whole-frame estimate ...", file=sys.stderr)
+    s32 = make_session(fp32, device="cpu", what="ResMem")
+    s8 = make_session(int8, device="cpu", what="int8 ResMem")
+    w = crop_weights(None).reshape(-1)
+
+    def measure(frames: list[npt.NDArray[Any]]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        import cv2
+
+        ms, est = [], []
+        for f in frames:
+            f1135 = cv2.resize(f, (CROP * 5, CROP * 5), interpolation=cv2.INTER_LINEAR)
+            ms.append(float(np.dot(w, run_crops(s32, crops_from_frame(f1135)).astype(np.float64))))
+            est.append(float(run_crops(s8, frame_crop(f1135))[0]))
+        return np.asarray(ms), np.asarray(est)
+
+    fit_ms, fit_est = measure(_frames(n_calibration, held_out=False))
+    a, b = (float(v) for v in np.polyfit(fit_est, fit_ms, 1))
+    val_ms, val_est = measure(_frames(n_calibration, held_out=True))
+    err = np.abs(a * val_est + b - val_ms)
+    fit_err = np.abs(a * fit_est + b - fit_ms)
+    worst = max(float(err.max()), float(fit_err.max()))  # the larger of the two: a held-out set can be easy
+    fit = {"a": a, "b": b, "delta": min(1.0, float(SETTINGS["bound_factor"]) * worst),
+           "held_out_max_error": float(err.max()), "held_out_mean_error": float(err.mean()),
+           "fit_max_error": float(fit_err.max()),
+           "n_fit": int(len(fit_ms)), "n_held_out": int(len(val_ms))}
+    meta = {**frame_fit_pins(), "description": "fast mode's whole-frame estimate: MS ~ a * int8(frame) + b",
+            "calibration": calibration_description(n_calibration)}
+    cache.write_model(out, (json.dumps(fit, indent=2, sort_keys=True) + "\n").encode(), meta)
+    if not quiet:
+        print(f"memlog: whole-frame estimate fitted (delta {fit['delta']:.3f})", file=sys.stderr)
+    return out
+
+
+def frame_fit() -> dict[str, float]:
+    """The cached whole-frame fit (a, b, delta); :class:`ModelError` naming the command when missing."""
+    p = cache.require(cache.model_path(FRAME_FIT_FILE), frame_fit_pins(), "fast mode's whole-frame estimate",
+                      "memlog models prepare resmem-int8")
+    try:
+        fit = json.loads(p.read_text())
+        return {"a": float(fit["a"]), "b": float(fit["b"]), "delta": float(fit["delta"])}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ModelError(f"{p} is not a whole-frame fit ({exc}); run `memlog models prepare resmem-int8 --force`") \
+            from None

@@ -55,8 +55,12 @@ def _resmem_int8() -> ModelInfo:
     from memlog.models import quantize
 
     src = "static int8 (QDQ) quantisation of the resmem ONNX, calibrated on scikit-image photos, error bounds measured on held-out ones"
-    return _cached("resmem-int8", "memorability (--fast)", src, RESMEM_LICENCE, cache.model_path(quantize.INT8_FILE),
+    info = _cached("resmem-int8", "memorability (--fast)", src, RESMEM_LICENCE, cache.model_path(quantize.INT8_FILE),
                    quantize.int8_pins(), "memlog models prepare resmem-int8")
+    if info.ready and not cache.is_ready(cache.model_path(quantize.FRAME_FIT_FILE), quantize.frame_fit_pins()):
+        info.ready = False
+        info.note = "its whole-frame estimate is not fitted: run `memlog models prepare resmem-int8`"
+    return info
 
 
 def _detector() -> ModelInfo:
@@ -103,9 +107,9 @@ def _prepare_one(name: str, force: bool) -> None:
 
         prepare_resmem(progress=True)
     elif name == "resmem-int8":
-        from memlog.models.quantize import prepare_resmem_int8
+        from memlog.models.quantize import prepare_fast_models
 
-        prepare_resmem_int8(force=force)
+        prepare_fast_models(force=force)
     elif name == "ssd-mobilenet-v2-coco":
         from memlog.models.detector import locate_detector_files
 

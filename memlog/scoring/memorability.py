@@ -231,7 +231,8 @@ class FastMemorability:
 
     def __init__(self, surrogate: Path | Memorability, exact: Memorability, epsilon: float,
                  delta: float | None = None, bias: float = 0.0, *, refine: bool = True,
-                 threads: int | None = None, device: str = "auto") -> None:
+                 threads: int | None = None, device: str = "auto",
+                 frame_fit: dict[str, float] | None = None) -> None:
         """``surrogate``: the int8 ONNX file (or an open :class:`Memorability`); ``exact``: the
         fp32 model; ``epsilon``/``delta``: the surrogate's per-crop and per-frame error
         bounds (``delta`` defaults to ``epsilon``, which bounds the frame error too) once
@@ -248,6 +249,7 @@ class FastMemorability:
         self.bias = float(bias)
         self.refine = bool(refine)
         self.batch = exact.batch
+        self.frame_fit = frame_fit
 
     def __call__(
         self,
@@ -259,6 +261,17 @@ class FastMemorability:
         """Score a frame like :meth:`Memorability.__call__` (same result fields)."""
         if threshold is not None and not np.isfinite(threshold):
             raise ScoringError(f"threshold must be finite, got {threshold}")
+        if threshold is not None and self.frame_fit is not None and (static_map is None or bool(np.all(static_map))):
+            # tier 0: the whole frame through the int8 model, one inference; decides frames whose
+            # estimate is further than its measured error from the threshold
+            from memlog.models.quantize import frame_crop
+
+            f = self.frame_fit
+            est0 = float(np.clip(f["a"] * float(self.surrogate.score_crops(frame_crop(bgr1135))[0]) + f["b"], 0.0, 1.0))
+            low0, high0 = max(0.0, est0 - f["delta"]), min(1.0, est0 + f["delta"])
+            if low0 >= threshold + DECISION_MARGIN or high0 < threshold - DECISION_MARGIN:
+                m0 = np.full((GRID, GRID), np.nan, dtype=np.float32)
+                return MemorabilityResult(m0, est0, low0, high0, False, 0, low0 >= threshold + DECISION_MARGIN, 1)
         crops = crops_from_frame(bgr1135)
         w = crop_weights(static_map).reshape(-1)
         todo = np.flatnonzero(w > 0)

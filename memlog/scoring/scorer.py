@@ -181,13 +181,13 @@ class Scorer:
             if session_device(exact.session) == "cuda":
                 exact.batch = 25  # a GPU runs a frame's 25 crops in one call as fast as a few
             if self.config.mode == "fast":
-                from memlog.models.quantize import resmem_int8_bounds, resmem_int8_path
+                from memlog.models.quantize import frame_fit, resmem_int8_bounds, resmem_int8_path
                 from memlog.scoring.memorability import FastMemorability
 
                 int8 = resmem_int8_path()
                 eps, delta, bias = resmem_int8_bounds(int8)
                 self._mem = FastMemorability(int8, exact, eps, delta, bias, refine=self.config.fast_refine,
-                                             threads=threads, device=self.config.device)
+                                             threads=threads, device=self.config.device, frame_fit=frame_fit())
             else:
                 self._mem = exact
         return self._mem
