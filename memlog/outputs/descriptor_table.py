@@ -9,6 +9,9 @@ a null float is NaN (both directions).
 The schema metadata records what made the descriptors (``memlog.kind``, ``memlog.version``,
 ``memlog.dim``, ``memlog.model_sha256``, ``memlog.params`` (JSON), ``memlog.memlog_version``)
 and ``memlog.extra``: a JSON object of whatever the caller adds (source log, thresholds ...).
+Whitened descriptors add ``memlog.whitening_sha256`` (the transform's sha256) and, for a map,
+``memlog.whitening``: the transform itself (JSON, arrays base64; checked against its sha256 on
+reading, see :mod:`memlog.descriptors.whitening`).
 Files are written atomically (temporary file in the same directory, then ``os.replace``).
 """
 
@@ -28,6 +31,7 @@ import pyarrow.parquet as pq
 from memlog._version import __version__
 from memlog.descriptors.base import DescriptorMeta
 from memlog.descriptors.table import POSITION_COLUMNS, SCORE_COLUMNS, DescriptorTable
+from memlog.descriptors.whitening import Whitening
 from memlog.errors import DescriptorError
 from memlog.io.atomic import atomic_output
 
@@ -37,12 +41,19 @@ F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
 
-def _meta_to_schema(meta: DescriptorMeta, extra: Mapping[str, Any], memlog_version: str) -> dict[bytes, bytes]:
+def _meta_to_schema(meta: DescriptorMeta, extra: Mapping[str, Any], memlog_version: str,
+                    whitening: Whitening | None = None) -> dict[bytes, bytes]:
     def enc(value: Any) -> bytes:
         return json.dumps(value, sort_keys=True).encode()
 
+    white: dict[bytes, bytes] = {}
+    if meta.whitening:
+        white[b"memlog.whitening_sha256"] = meta.whitening.encode()
+    if whitening is not None:
+        white[b"memlog.whitening"] = whitening.to_json().encode()
     try:
         return {
+            **white,
             b"memlog.kind": meta.kind.encode(),
             b"memlog.version": meta.version.encode(),
             b"memlog.dim": str(meta.dim).encode(),
@@ -72,7 +83,7 @@ def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable) -> P
         for name in cols:
             if name in table.positions:
                 arrays[name] = pa.array(table.positions[name], type=pa.float64(), from_pandas=True)
-    schema_meta = _meta_to_schema(table.meta, table.extra, table.memlog_version or __version__)
+    schema_meta = _meta_to_schema(table.meta, table.extra, table.memlog_version or __version__, table.whitening)
     pa_table = pa.table(arrays).replace_schema_metadata(schema_meta)
     target = Path(path)
     try:
@@ -83,7 +94,9 @@ def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable) -> P
     return target
 
 
-def _meta_from_schema(md: Mapping[bytes, bytes] | None, path: Path) -> tuple[DescriptorMeta, dict[str, Any], str]:
+def _meta_from_schema(
+    md: Mapping[bytes, bytes] | None, path: Path
+) -> tuple[DescriptorMeta, dict[str, Any], str, Whitening | None]:
     if not md or b"memlog.kind" not in md:
         raise DescriptorError(f"{path} is not a memlog descriptor table (no memlog schema metadata)")
     try:
@@ -94,12 +107,24 @@ def _meta_from_schema(md: Mapping[bytes, bytes] | None, path: Path) -> tuple[Des
             dim=int(md[b"memlog.dim"]),
             model_sha256=sha or None,
             params=json.loads(md.get(b"memlog.params", b"{}")),
+            whitening=md.get(b"memlog.whitening_sha256", b"").decode() or None,
         )
         extra = json.loads(md.get(b"memlog.extra", b"{}"))
         version = md.get(b"memlog.memlog_version", b"").decode()
+        white_json = md.get(b"memlog.whitening")
+        white = None if white_json is None else json.loads(white_json)
     except (KeyError, ValueError, UnicodeDecodeError) as exc:
         raise DescriptorError(f"{path} has invalid memlog metadata: {exc}") from None
-    return meta, extra, version
+    whitening = None
+    if white is not None:
+        try:
+            whitening = Whitening.from_dict(white)
+        except DescriptorError as exc:
+            raise DescriptorError(f"{path}: {exc}") from None
+        if whitening.sha256 != meta.whitening:
+            raise DescriptorError(f"{path}: the stored whitening transform (sha256 {whitening.sha256[:12]}…) is not "
+                                  f"the one the descriptors name ({str(meta.whitening)[:12]}…)")
+    return meta, extra, version, whitening
 
 
 def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
@@ -109,7 +134,7 @@ def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
         table = pq.read_table(p)
     except (OSError, pa.ArrowException) as exc:
         raise DescriptorError(f"could not read descriptor table {p}: {exc}") from None
-    meta, extra, version = _meta_from_schema(table.schema.metadata, p)
+    meta, extra, version, whitening = _meta_from_schema(table.schema.metadata, p)
     required = ("topic", "frame_index", "log_time_ns", "stamp_ns", "descriptor")
     missing = [c for c in required if c not in table.column_names]
     if missing:
@@ -146,4 +171,5 @@ def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
         positions=positions,
         extra=extra,
         memlog_version=version or None,
+        whitening=whitening,
     )

@@ -26,21 +26,20 @@ from typing import Any, Literal
 import numpy as np
 
 from memlog._version import __version__
-from memlog.descriptors.base import Describer
-from memlog.descriptors.extract import build_table
-from memlog.descriptors.registry import make_describer
+from memlog.descriptors.auto import AUTO, DescriptorChoice, resolve_descriptor
+from memlog.descriptors.extract import ReferenceDescribing, build_table, drive_distinctiveness
+from memlog.descriptors.registry import DESCRIBERS, make_describer
+from memlog.descriptors.whitening import MIN_SAMPLES
 from memlog.errors import ConfigError, ImageDecodeError, SelectionError
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow, LogReader
-from memlog.io.frame import Frame
 from memlog.io.open import open_log
 from memlog.io.positions import PositionTrack, read_track
 from memlog.io.records import ReadReport
-from memlog.io.types import ImagePayload
 from memlog.outputs.annotated import read_scores, run_config, scores_message
 from memlog.outputs.descriptor_table import write_descriptors
 from memlog.outputs.maplog import MapLogWriter
-from memlog.progress import progress
+from memlog.progress import info, progress
 from memlog.scoring.config import ScoreConfig
 from memlog.scoring.scorer import Scorer
 from memlog.selection import ScoreTable, Selection
@@ -63,8 +62,11 @@ class MapConfig:
     ``topics``: camera topics to map (default: every camera topic); ``keep_topics``: topics
     copied whole (GPS, odometry); ``position_topic``: NavSatFix/pose/odometry topic for
     positions (default: the first found); ``image_format``/``jpeg_quality``: how raw frames
-    are encoded; ``descriptor``: reference descriptor kind (None: no descriptors);
-    ``descriptors_path``: the Parquet file (default: the map path with ``.parquet``).
+    are encoded; ``descriptor``: reference descriptor kind (``"auto"``: chosen from the frame
+    size, :mod:`memlog.descriptors.auto`; None: no descriptors); ``descriptors_path``: the Parquet
+    file (default: the map path with ``.parquet``); ``whiten``: fit a PCA-whitening on every
+    frame of the drive and store it with the map (:mod:`memlog.descriptors.whitening`);
+    ``whiten_dim``: its largest dimension (default: the documented rule).
     """
 
     score: ScoreConfig = field(default_factory=ScoreConfig)
@@ -74,10 +76,18 @@ class MapConfig:
     position_topic: str | None = None
     image_format: Literal["jpeg", "png"] = "jpeg"
     jpeg_quality: int = 90
-    descriptor: str | None = "thumbnail"
+    descriptor: str | None = AUTO
     descriptors_path: str | None = None
+    whiten: bool = True
+    whiten_dim: int | None = None
 
     def __post_init__(self) -> None:
+        if self.descriptor is not None and self.descriptor != AUTO and self.descriptor not in DESCRIBERS:
+            raise ConfigError(f"descriptor must be auto, one of {', '.join(sorted(DESCRIBERS))} or none, "
+                              f"got {self.descriptor!r}")
+        wd = self.whiten_dim
+        if wd is not None and (isinstance(wd, bool) or not isinstance(wd, int) or wd < 1):
+            raise ConfigError(f"whiten_dim must be an integer >= 1, got {wd!r}")
         if self.image_format not in ("jpeg", "png"):
             raise ConfigError(f"image_format must be jpeg or png, got {self.image_format!r}")
         q = self.jpeg_quality
@@ -108,6 +118,8 @@ class MapResult:
     thresholds: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
     report: ReadReport | None = None
+    descriptor: DescriptorChoice | None = None
+    whitening: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -117,6 +129,7 @@ class MapResult:
             "bytes_in": self.bytes_in, "bytes_out": self.bytes_out,
             "byte_fraction": self.bytes_out / max(self.bytes_in, 1), "thresholds": self.thresholds,
             "seconds": round(self.seconds, 3),
+            "descriptor": self.descriptor.to_dict() if self.descriptor else None, "whitening": self.whitening,
             "topics": {t: s.to_dict() for t, s in self.selections.items()},
         }
 
@@ -126,9 +139,9 @@ def _val(v: Any) -> float:
 
 
 def score_table(records: list[dict[str, Any]], topic: str, track: PositionTrack | None = None,
-                descriptors: np.ndarray | None = None) -> ScoreTable:
+                descriptors: np.ndarray | None = None, ds: dict[int, float] | None = None) -> ScoreTable:
     """A ScoreTable from score records (``T/memlog/scores`` messages) of one topic; records of
-    frames that did not decode are left out."""
+    frames that did not decode are left out. ``ds``: distinctiveness by frame index."""
     recs = [r for r in records if r.get("rejected_by") != "undecodable"]
     t = np.array([r["log_time"] for r in recs], dtype=np.int64)
     pos = track.at(t.tolist()) if track is not None and len(recs) else None
@@ -138,6 +151,7 @@ def score_table(records: list[dict[str, Any]], topic: str, track: PositionTrack 
         index=np.array([r["frame_index"] for r in recs], dtype=np.int64), t_ns=t,
         ms=np.array([_val(r["ms"]) for r in recs]), ss=np.array([_val(r["ss"]) for r in recs]),
         es=np.array([_val(r["es"]) for r in recs]), positions=pos, descriptors=descriptors, topic=topic,
+        ds=None if ds is None else np.array([ds.get(r["frame_index"], np.nan) for r in recs]),
     )
 
 
@@ -184,42 +198,6 @@ def _scores_from(scores: str | os.PathLike[str] | Records, cfg: MapConfig) -> Re
     return read_scores(scores)
 
 
-def _stripped(frame: Frame) -> Frame:
-    """``frame`` without its pixels (kept for the descriptor table's rows)."""
-    return dataclasses.replace(frame, payload=ImagePayload(frame.payload.kind, frame.payload.encoding, b""))
-
-
-class _Describing:
-    """Describes kept frames in batches while the map is written (bounded memory)."""
-
-    def __init__(self, describer: Describer, reader: LogReader, batch: int = 16) -> None:
-        self.describer, self.reader, self.batch = describer, reader, batch
-        self.frames: list[Frame] = []
-        self.rows: list[np.ndarray] = []
-        self._pending: list[tuple[Frame, np.ndarray]] = []
-
-    def add(self, frame: Frame) -> None:
-        try:
-            img = frame.decode_bgr()
-        except ImageDecodeError as exc:
-            self.reader.decode_error(frame, exc)
-            return
-        self._pending.append((_stripped(frame), img))
-        if len(self._pending) >= self.batch:
-            self.flush()
-
-    def flush(self) -> None:
-        if self._pending:
-            self.rows.append(self.describer.describe([img for _, img in self._pending]))
-            self.frames.extend(f for f, _ in self._pending)
-            self._pending.clear()
-
-    def result(self) -> tuple[list[Frame], np.ndarray]:
-        self.flush()
-        desc = np.concatenate(self.rows) if self.rows else np.zeros((0, self.describer.dim), np.float32)
-        return self.frames, desc
-
-
 def make_map(
     log: str | os.PathLike[str],
     output: str | os.PathLike[str],
@@ -238,7 +216,8 @@ def make_map(
     check_output(output, inputs)
     if dpath is not None:
         check_output(dpath, inputs + [output], flag="--descriptors")
-    describer = make_describer(cfg.descriptor) if cfg.descriptor is not None else None
+    if sel_cfg.needs_distinctiveness and cfg.descriptor is None:
+        raise ConfigError("distinctiveness (--dt / --distinct-weight) is computed from descriptors: give a descriptor")
     with open_log(log) as reader:
         cams = reader.check_camera_topics(cfg.topics)
         missing_keep = set(cfg.keep_topics) - set(reader.topics())
@@ -246,6 +225,8 @@ def make_map(
             raise ConfigError(f"--keep-topic: {reader.path} has no topic {', '.join(sorted(missing_keep))} "
                               f"(topics: {', '.join(reader.topics())})")
         track = read_track(reader, cfg.position_topic)  # None when the log has no position topic
+        choice = resolve_descriptor(cfg.descriptor, reader, cams[0]) if cfg.descriptor is not None else None
+        describer = make_describer(choice.chosen) if choice is not None else None
         thumbs: dict[str, dict[int, np.ndarray]] | None = {} if sel_cfg.needs_descriptors else None
         if scores is None:
             score_cfg = cfg.score.replace(all_scores=True) if sel_cfg.needs_all_scores else cfg.score
@@ -256,6 +237,12 @@ def make_map(
                 for t in cams:
                     thumbs[t] = _thumbnails(reader, t, {r["frame_index"] for r in recs_by_topic.get(t, [])})
         cams = [t for t in cams if t in recs_by_topic] if cfg.topics is None else cams
+        ds_by_topic: dict[str, dict[int, float]] = {}
+        known: dict[tuple[str, int], np.ndarray] = {}
+        whitening = None
+        if sel_cfg.needs_distinctiveness and describer is not None:
+            ds_by_topic, known, whitening = drive_distinctiveness(
+                reader, cams, describer, whiten=cfg.whiten, whiten_dim=cfg.whiten_dim, config=sel_cfg.distinct_config())
         selections: dict[str, Selection] = {}
         for t in cams:
             recs = recs_by_topic.get(t, [])
@@ -264,7 +251,7 @@ def make_map(
                 have = thumbs.get(t, {})
                 recs = [r for r in recs if r["frame_index"] in have]
                 descs = np.stack([have[r["frame_index"]] for r in recs]).astype(np.float32) if recs else None
-            table = score_table(recs, t, track, descs)
+            table = score_table(recs, t, track, descs, ds_by_topic.get(t) if sel_cfg.needs_distinctiveness else None)
             left_out = len(recs_by_topic.get(t, [])) - table.n
             if left_out:
                 reader.warn(f"{reader.path}: topic {t}: {left_out} frame(s) left out of the selection "
@@ -281,7 +268,10 @@ def make_map(
                 "entropy; lower --mt/--st/--et or let memlog pick thresholds with --keep-fraction 0.25"
             )
         score_recs = {t: {r["frame_index"]: r for r in recs_by_topic.get(t, [])} for t in cams}
-        describing = _Describing(describer, reader) if describer is not None else None
+        describing = None
+        if describer is not None:
+            describing = ReferenceDescribing(describer, reader, fit_whitening=cfg.whiten and whitening is None,
+                                             whiten_dim=cfg.whiten_dim, whitening=whitening, known=known)
         bytes_in = bytes_kept = 0
         counts = reader.message_counts()
         total = None
@@ -297,15 +287,32 @@ def make_map(
                     continue
                 bytes_in += len(item.raw.data)
                 frame = item.frame
-                if frame is None or item.index not in kept[item.raw.channel.topic]:
+                if frame is None:
+                    continue
+                keep = item.index in kept[item.raw.channel.topic]
+                if describing is not None and (keep or (describing.wants_all_frames
+                                                        and frame.index in score_recs[frame.topic])):
+                    describing.add(frame, keep)  # the whitening is fitted on every frame selection saw
+                if not keep:
                     continue
                 bytes_kept += len(item.raw.data)
                 w.write_frame(frame, item.raw, score_recs[frame.topic].get(frame.index))
-                if describing is not None:
-                    describing.add(frame)
             result = MapResult(Path(output), None, selections, n_in, n_kept, bytes_in, 0, dict(thresholds),
-                               report=reader.report)
+                               report=reader.report, descriptor=choice)
+            described = None
+            if describing is not None:
+                described = describing.result(source=f"{reader.path} ({', '.join(cams)})")
+                white = described[2]
+                if white is not None:
+                    result.whitening = {"sha256": white.sha256, "dim_in": white.dim_in, "dim_out": white.dim_out,
+                                        "n_fit": white.n_fit, "eps": white.eps}
+                elif cfg.whiten:
+                    result.whitening = {"skipped": f"fewer than {MIN_SAMPLES} frames described; not whitened"}
+                    info(f"memlog: {reader.path}: the map is not whitened: whitening is fitted on at least "
+                         f"{MIN_SAMPLES} frames of the drive")
             w.close({
+                "descriptor": json.dumps(choice.to_dict() if choice else None, sort_keys=True),
+                "whitening": json.dumps(result.whitening, sort_keys=True),
                 "memlog_version": __version__, "input": str(reader.path), "config": cfg.score.to_json(),
                 "selection_config": json.dumps(sel_cfg.to_dict(), sort_keys=True),
                 "mode": sel_cfg.mode, "keep_fraction": json.dumps(sel_cfg.keep_fraction),
@@ -315,11 +322,12 @@ def make_map(
                 "selection": json.dumps({t: s.to_dict() for t, s in selections.items()}),
             })
         result.bytes_out = os.path.getsize(output)
-        if describing is not None and describer is not None and dpath is not None:
-            frames, desc = describing.result()
+        if described is not None and describer is not None and dpath is not None and choice is not None:
+            frames, desc, white = described
             extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
-                     "keep_fraction": sel_cfg.keep_fraction}
-            write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra))
+                     "keep_fraction": sel_cfg.keep_fraction, "descriptor_choice": choice.to_dict()}
+            write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra,
+                                                 whitening=white))
             result.descriptors = dpath
     result.seconds = time.perf_counter() - t0
     return result
