@@ -378,8 +378,10 @@ def add_evaluate(sub: Any) -> None:
     g.add_argument("--stride", type=positive_int, default=1, help="every n-th frame of each drive (default 1)")
     g.add_argument("--max-frames", type=positive_int, help="at most this many frames of each drive")
     p.add_argument("--seeds", type=positive_int, help="random baseline seeds (default 20)")
-    p.add_argument("--paper-discarded", choices=["false_negative", "true_negative"],
-                   help="paper protocol: how a query whose best match was discarded counts (default false_negative)")
+    p.add_argument("--paper-discarded", choices=["false_negative", "true_negative", "uncovered_negative"],
+                   help="paper protocol: how a query whose best match was discarded counts (default false_negative; "
+                        "true_negative drops it from the positives; uncovered_negative drops the queries with no "
+                        "true place in the map instead)")
     p.add_argument("--reference-topic", help="reference camera topic (default: the first)")
     p.add_argument("--query-topic", help="query camera topic (default: the first)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report (an older one in OUT is removed)")

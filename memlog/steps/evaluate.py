@@ -41,6 +41,7 @@ from memlog.descriptors.search import match, time_per_query
 from memlog.descriptors.table import DescriptorTable
 from memlog.errors import ConfigError, DescriptorError, EvaluationError, MemlogError
 from memlog.evaluation.metrics import (
+    PAPER_READINGS,
     ProtocolResult,
     evaluate_map_only,
     evaluate_paper,
@@ -93,7 +94,7 @@ class EvaluateConfig:
     tol_m: float = 25.0
     k: int = 10
     seeds: int = 20
-    paper_discarded: Literal["false_negative", "true_negative"] = "false_negative"
+    paper_discarded: Literal["false_negative", "true_negative", "uncovered_negative"] = "false_negative"
     reference_topic: str | None = None
     query_topic: str | None = None
     report: bool = True
@@ -115,8 +116,9 @@ class EvaluateConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
-        if self.paper_discarded not in ("false_negative", "true_negative"):
-            raise ConfigError(f"paper_discarded must be false_negative or true_negative, got {self.paper_discarded!r}")
+        if self.paper_discarded not in PAPER_READINGS:
+            raise ConfigError(f"paper_discarded must be one of {', '.join(PAPER_READINGS)}, got "
+                              f"{self.paper_discarded!r}")
 
     @property
     def descriptors(self) -> list[str]:
