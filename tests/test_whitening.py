@@ -61,8 +61,8 @@ def test_streaming_fit_equals_one_shot_and_dimension_rule() -> None:
         f.add(x[start : start + 17])
     a, b = f.fit(), fit_whitening(x)
     assert a.sha256 == b.sha256 or np.allclose(a.proj, b.proj, atol=1e-5)
-    assert a.dim_out == whitening_dim(120, 20) == min(64, 20, 120 // 4) == 20
-    assert whitening_dim(100, 384) == 25 and whitening_dim(10_000, 384) == 64 and whitening_dim(10_000, 384, 128) == 128
+    assert a.dim_out == whitening_dim(120, 20) == min(128, 20, 120 // 4) == 20
+    assert whitening_dim(100, 384) == 25 and whitening_dim(10_000, 384) == 128 and whitening_dim(10_000, 384, 32) == 32
     with pytest.raises(DescriptorError, match="at least"):
         fit_whitening(x[:5])
 

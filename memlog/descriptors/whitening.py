@@ -13,11 +13,11 @@ transform's sha256 (:attr:`DescriptorMeta.whitening`), so a query described with
 another one, is refused by :func:`~memlog.descriptors.base.check_compatible`.
 
 Dimension rule (:func:`whitening_dim`): ``dim_out = min(max_dim, dim_in, n // 4)`` with
-``max_dim = 64`` by default: the covariance of ``n`` descriptors has at most ``n - 1`` non-zero
+``max_dim = 128`` by default: the covariance of ``n`` descriptors has at most ``n - 1`` non-zero
 directions and the small ones are noise that whitening would amplify; a quarter of the sample
-count keeps each kept direction estimated from >= 4 samples. 64 was the best of
-16/32/64/128/256 on the Nordland slice (``benchmarks/whitening_table.py``) and is the dimension
-of the issue's 960x540 measurement.
+count keeps each kept direction estimated from >= 4 samples. 128 was the best of 32/64/128/256
+on the Nordland slice (800 places, thumbnail and DINOv2 kinds; ``benchmarks/desc_table.py``);
+the issue's 960x540 measurement used 64 dims on 200 frames, where the rule gives 50.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ F64 = npt.NDArray[np.float64]
 
 WHITENING_VERSION = "1"
 #: Upper bound of the whitened dimension (see the module docstring for how it was chosen).
-DEFAULT_MAX_DIM = 64
+DEFAULT_MAX_DIM = 128
 #: Regulariser: added to every eigenvalue, relative to the largest one.
 DEFAULT_EPS = 1e-3
 #: At least this many descriptors are needed to fit a transform (a map of a shorter drive is
