@@ -15,7 +15,6 @@ The :class:`MapResult` carries the selections, so ``evaluate`` measures exactly 
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import time
