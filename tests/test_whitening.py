@@ -203,3 +203,41 @@ def test_whitened_describer_metadata() -> None:
     assert d.meta().whitening == w.sha256 and d.dim == w.dim_out == 16 and d.meta().kind == "thumbnail"
     with pytest.raises(DescriptorError, match="expects"):
         WhitenedDescriber(make_describer("thumbnail", width=32, height=16), w)
+
+
+def _resized_copy(src: Path, dst: Path, scale: float) -> None:
+    """A Foxglove-JSON MCAP of ``src``'s frames resized by ``scale`` (the rule's mechanics on
+    upscaled / downscaled EuRoC copies; same schema, channel and stamps)."""
+    import base64
+
+    import cv2
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        r = make_reader(f)
+        summary = r.get_summary()
+        assert summary is not None
+        w = Writer(out)
+        w.start()
+        ids: dict[int, int] = {}
+        for sc in summary.schemas.values():
+            ids[sc.id] = w.register_schema(sc.name, sc.encoding, sc.data)
+        chans = {c.id: w.register_channel(c.topic, c.message_encoding, ids[c.schema_id]) for c in summary.channels.values()}
+        for _s, ch, m in r.iter_messages():
+            msg = json.loads(m.data)
+            img = cv2.imdecode(np.frombuffer(base64.b64decode(msg["data"]), np.uint8), cv2.IMREAD_UNCHANGED)
+            img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+            msg["data"] = base64.b64encode(cv2.imencode(".jpg", img)[1].tobytes()).decode()
+            w.add_message(chans[ch.id], m.log_time, json.dumps(msg).encode(), m.publish_time)
+        w.finish()
+
+
+@pytest.mark.parametrize(("scale", "size", "kind"), [(0.25, (94, 60), AUTO_SMALL), (0.5, (188, 120), AUTO_LEARNED),
+                                                     (2.0, (752, 480), AUTO_LEARNED)])
+def test_auto_rule_on_resized_euroc(tmp_path: Path, scale: float, size: tuple[int, int], kind: str) -> None:
+    copy = tmp_path / "euroc.mcap"
+    _resized_copy(shared("euroc_micro_foxglove.mcap"), copy, scale)
+    with open_log(copy) as r:
+        c = resolve_descriptor("auto", r, "/camera/image/compressed")
+    assert c.frame_size == size and c.chosen == kind
