@@ -61,8 +61,9 @@ def test_streaming_fit_equals_one_shot_and_dimension_rule() -> None:
         f.add(x[start : start + 17])
     a, b = f.fit(), fit_whitening(x)
     assert a.sha256 == b.sha256 or np.allclose(a.proj, b.proj, atol=1e-5)
-    assert a.dim_out == whitening_dim(120, 20) == min(128, 20, 120 // 4) == 20
-    assert whitening_dim(100, 384) == 25 and whitening_dim(10_000, 384) == 128 and whitening_dim(10_000, 384, 32) == 32
+    assert a.dim_out == whitening_dim(120, 20) == min(512, 20, 120 // 2) == 20
+    assert whitening_dim(100, 384) == 50 and whitening_dim(10_000, 384) == 384 and whitening_dim(10_000, 384, 32) == 32
+    assert whitening_dim(10_000, 2048) == 512
     with pytest.raises(DescriptorError, match="at least"):
         fit_whitening(x[:5])
 
@@ -200,7 +201,7 @@ def test_whitened_describer_metadata() -> None:
     x = _data(n=64, d=2048, seed=3)
     w = fit_whitening(x)
     d = WhitenedDescriber(make_describer("thumbnail"), w)
-    assert d.meta().whitening == w.sha256 and d.dim == w.dim_out == 16 and d.meta().kind == "thumbnail"
+    assert d.meta().whitening == w.sha256 and d.dim == w.dim_out == 32 and d.meta().kind == "thumbnail"
     with pytest.raises(DescriptorError, match="expects"):
         WhitenedDescriber(make_describer("thumbnail", width=32, height=16), w)
 

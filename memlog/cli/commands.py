@@ -254,7 +254,7 @@ def add_map(sub: Any) -> None:
     p.add_argument("--descriptors", help="descriptor Parquet path (default: MAP.parquet)")
     p.add_argument("--no-whiten", action="store_true",
                    help="do not fit and store a PCA-whitening of the descriptors (default: whitened)")
-    p.add_argument("--whiten-dim", type=positive_int, help="largest whitened dimension (default 128; at most a quarter of the frames)")
+    p.add_argument("--whiten-dim", type=positive_int, help="largest whitened dimension (default 512; never more than half the frames)")
     p.add_argument("--json", action="store_true", help="print the map summary as JSON")
     p.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC", help="camera topic(s) to map")
     add_config_flags(p)
