@@ -107,3 +107,36 @@ def test_config_checks() -> None:
     with pytest.raises(ConfigError, match="ds"):
         SelectionConfig(mode="paper", dt=0.3).run(ScoreTable(index=np.arange(3), t_ns=np.arange(3),
                                                              ms=np.ones(3), ss=np.ones(3), es=np.ones(3)))
+
+
+def test_map_selects_by_distinctiveness_of_the_whitened_drive(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """End to end on the real EuRoC frames: the map step's DS equals DS computed here from the
+    describer's output whitened by a transform fitted on every frame; both modes keep accordingly."""
+    from memlog.descriptors.registry import make_describer
+    from memlog.descriptors.whitening import fit_whitening
+    from memlog.io import open_log
+    from memlog.outputs.descriptor_table import read_descriptors
+    from memlog.steps.map import MapConfig, make_map
+    from tests.conftest import shared
+
+    log, topic = shared("euroc_micro_ros2.mcap"), "/cam0/image_raw"
+    with open_log(log) as r:
+        frames = list(r.frames([topic]))
+        imgs = [f.decode_bgr() for f in frames]
+    recs = {topic: [{"frame_index": f.index, "log_time": f.log_time_ns, "ms": 0.9, "ss": 1.0, "es": 0.9}
+                    for f in frames]}
+    raw = make_describer("thumbnail").describe(imgs)
+    w = fit_whitening(raw)
+    ds = distinctiveness(w.apply(raw))
+    seg = SelectionConfig(keep_fraction=0.2, segment_by="count", weights=(0.0, 0.0, 0.0), distinct_weight=1.0)
+    res = make_map(log, tmp_path / "m.mcap", MapConfig(select=seg, topics=(topic,), descriptor="thumbnail"),
+                   scores=recs)
+    want = seg.run(_table(ds)).kept_indices
+    np.testing.assert_array_equal(res.selections[topic].kept_indices, want)
+    t = read_descriptors(res.descriptors)
+    assert t.whitening is not None and t.whitening.sha256 == w.sha256  # the same transform, fitted once
+    np.testing.assert_allclose(t.descriptors, w.apply(raw)[want], atol=1e-5)
+    pap = SelectionConfig(mode="paper", mt=0.0, st=0.0, et=0.0, dt=0.6)
+    res2 = make_map(log, tmp_path / "p.mcap", MapConfig(select=pap, topics=(topic,), descriptor="thumbnail"),
+                    scores=recs)
+    np.testing.assert_array_equal(res2.selections[topic].kept_indices, np.flatnonzero(ds >= 0.6))
