@@ -224,7 +224,8 @@ def make_map(
             raise ConfigError(f"--keep-topic: {reader.path} has no topic {', '.join(sorted(missing_keep))} "
                               f"(topics: {', '.join(reader.topics())})")
         track = read_track(reader, cfg.position_topic)  # None when the log has no position topic
-        choice = resolve_descriptor(cfg.descriptor, reader, cams[0]) if cfg.descriptor is not None else None
+        # no camera topic: nothing to describe (the selection below reports the empty map)
+        choice = resolve_descriptor(cfg.descriptor, reader, cams[0]) if cfg.descriptor is not None and cams else None
         describer = make_describer(choice.chosen) if choice is not None else None
         thumbs: dict[str, dict[int, np.ndarray]] | None = {} if sel_cfg.needs_descriptors else None
         if scores is None:
