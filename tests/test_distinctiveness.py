@@ -140,3 +140,12 @@ def test_map_selects_by_distinctiveness_of_the_whitened_drive(tmp_path) -> None:
     res2 = make_map(log, tmp_path / "p.mcap", MapConfig(select=pap, topics=(topic,), descriptor="thumbnail"),
                     scores=recs)
     np.testing.assert_array_equal(res2.selections[topic].kept_indices, np.flatnonzero(ds >= 0.6))
+    # scores of part of the drive: the whitening and DS are computed on those frames only
+    part = {topic: recs[topic][:60]}
+    res3 = make_map(log, tmp_path / "q.mcap", MapConfig(select=seg, topics=(topic,), descriptor="thumbnail"),
+                    scores=part)
+    w60 = fit_whitening(raw[:60])
+    t3 = read_descriptors(res3.descriptors)
+    assert t3.whitening is not None and t3.whitening.n_fit == 60 and t3.whitening.sha256 == w60.sha256
+    np.testing.assert_array_equal(res3.selections[topic].kept_indices,
+                                  seg.run(_table(distinctiveness(w60.apply(raw[:60])))).kept_indices)

@@ -217,20 +217,23 @@ def _stripped(frame: Frame) -> Frame:
 
 def drive_distinctiveness(
     reader: LogReader, topics: list[str], describer: Describer, *, whiten: bool, whiten_dim: int | None,
-    config: Any = None,
+    config: Any = None, indices: Mapping[str, set[int]] | None = None,
 ) -> tuple[dict[str, dict[int, float]], dict[tuple[str, int], np.ndarray], Whitening | None]:
-    """Distinctiveness of every frame of ``topics`` (:mod:`memlog.selection.distinctiveness`),
-    computed on the describer's descriptors of the whole drive, whitened by a transform fitted on
-    them when ``whiten``. Returns DS by topic and frame index, the raw descriptors by
-    ``(topic, frame index)`` (so the map pass need not describe again) and the transform."""
+    """Distinctiveness of every frame of ``topics`` (only those in ``indices[topic]`` when given:
+    the frames the selection sees), computed on the describer's descriptors of the whole drive,
+    whitened by a transform fitted on them when ``whiten``
+    (:mod:`memlog.selection.distinctiveness`). Returns DS by topic and frame index, the raw
+    descriptors by ``(topic, frame index)`` (so the map pass need not describe again) and the
+    transform."""
     from memlog.selection.distinctiveness import distinctiveness
 
     raw: dict[tuple[str, int], np.ndarray] = {}
     per_topic: dict[str, tuple[list[int], np.ndarray]] = {}
     fitter = WhiteningFitter(describer.dim) if whiten else None
     for t in topics:
-        frames = progress(reader.frames([t]), total=reader.count_frames(FrameWindow((t,))), desc="describe",
-                          unit="frame")
+        wanted = None if indices is None else {t: indices.get(t, set())}
+        total = reader.count_frames(FrameWindow((t,))) if wanted is None else len(wanted[t])
+        frames = progress(reader.frames([t], indices=wanted), total=total, desc="describe", unit="frame")
         kept, desc = describe_frames(frames, describer, None)
         per_topic[t] = ([f.index for f in kept], desc)
         raw.update({(t, f.index): desc[k] for k, f in enumerate(kept)})

@@ -242,7 +242,8 @@ def make_map(
         whitening = None
         if sel_cfg.needs_distinctiveness and describer is not None:
             ds_by_topic, known, whitening = drive_distinctiveness(
-                reader, cams, describer, whiten=cfg.whiten, whiten_dim=cfg.whiten_dim, config=sel_cfg.distinct_config())
+                reader, cams, describer, whiten=cfg.whiten, whiten_dim=cfg.whiten_dim, config=sel_cfg.distinct_config(),
+                indices={t: {r["frame_index"] for r in recs_by_topic.get(t, [])} for t in cams})
         selections: dict[str, Selection] = {}
         for t in cams:
             recs = recs_by_topic.get(t, [])
