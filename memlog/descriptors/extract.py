@@ -218,21 +218,33 @@ def _stripped(frame: Frame) -> Frame:
 def drive_distinctiveness(
     reader: LogReader, topics: list[str], describer: Describer, *, whiten: bool, whiten_dim: int | None,
     config: Any = None, indices: Mapping[str, set[int]] | None = None,
+    known: Mapping[tuple[str, int], np.ndarray] | None = None,
 ) -> tuple[dict[str, dict[int, float]], dict[tuple[str, int], np.ndarray], Whitening | None]:
     """Distinctiveness of every frame of ``topics`` (only those in ``indices[topic]`` when given:
     the frames the selection sees), computed on the describer's descriptors of the whole drive,
     whitened by a transform fitted on them when ``whiten``
     (:mod:`memlog.selection.distinctiveness`). Returns DS by topic and frame index, the raw
     descriptors by ``(topic, frame index)`` (so the map pass need not describe again) and the
-    transform."""
+    transform. ``known``: raw descriptors already computed (not described again)."""
     from memlog.selection.distinctiveness import distinctiveness
 
     raw: dict[tuple[str, int], np.ndarray] = {}
     per_topic: dict[str, tuple[list[int], np.ndarray]] = {}
     fitter = WhiteningFitter(describer.dim) if whiten else None
     for t in topics:
-        wanted = None if indices is None else {t: indices.get(t, set())}
-        total = reader.count_frames(FrameWindow((t,))) if wanted is None else len(wanted[t])
+        have = {i: v for (tt, i), v in (known or {}).items() if tt == t}
+        want = None if indices is None else set(indices.get(t, set()))
+        if have and want is not None and want <= set(have):
+            kept_idx = sorted(want)
+            desc = np.stack([have[i] for i in kept_idx]).astype(np.float32) if kept_idx else \
+                np.zeros((0, describer.dim), np.float32)
+            per_topic[t] = (kept_idx, desc)
+            raw.update({(t, i): desc[k] for k, i in enumerate(kept_idx)})
+            if fitter is not None:
+                fitter.add(desc)
+            continue
+        wanted = None if want is None else {t: want}
+        total = reader.count_frames(FrameWindow((t,))) if wanted is None else len(want or ())
         frames = progress(reader.frames([t], indices=wanted), total=total, desc="describe", unit="frame")
         kept, desc = describe_frames(frames, describer, None)
         per_topic[t] = ([f.index for f in kept], desc)

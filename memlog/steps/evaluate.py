@@ -354,7 +354,9 @@ def evaluate(
         map_res = make_map(reference, map_path,
                            MapConfig(score=score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=kind,
                                      whiten=cfg.whiten),
-                           scores=in_window)
+                           scores=in_window,
+                           known_descriptors={(ref_topic, int(i)): ref_t.descriptors[r]
+                                              for r, i in enumerate(ref_t.frame_index)})
         sel = map_res.selections[ref_topic]
         mask = np.isin(ref_t.frame_index, sel.kept_indices)
         table = score_table(in_window[ref_topic], ref_topic)

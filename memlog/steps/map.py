@@ -203,10 +203,13 @@ def make_map(
     config: MapConfig | None = None,
     *,
     scores: str | os.PathLike[str] | Records | None = None,
+    known_descriptors: dict[tuple[str, int], np.ndarray] | None = None,
 ) -> MapResult:
     """Build the memorable-map log of ``log`` (see module doc). ``scores``: an annotated MCAP of
-    ``memlog score`` (or its records) to reuse instead of scoring. Raises :class:`EmptyMapError`
-    when nothing would be kept."""
+    ``memlog score`` (or its records) to reuse instead of scoring; ``known_descriptors``: raw
+    descriptors of the configured kind by ``(topic, frame index)``, used instead of describing
+    those frames again (``evaluate`` has them). Raises :class:`EmptyMapError` when nothing would
+    be kept."""
     t0 = time.perf_counter()
     cfg = config or MapConfig()
     sel_cfg = cfg.select
@@ -238,12 +241,12 @@ def make_map(
                     thumbs[t] = _thumbnails(reader, t, {r["frame_index"] for r in recs_by_topic.get(t, [])})
         cams = [t for t in cams if t in recs_by_topic] if cfg.topics is None else cams
         ds_by_topic: dict[str, dict[int, float]] = {}
-        known: dict[tuple[str, int], np.ndarray] = {}
+        known: dict[tuple[str, int], np.ndarray] = dict(known_descriptors or {})
         whitening = None
         if sel_cfg.needs_distinctiveness and describer is not None:
             ds_by_topic, known, whitening = drive_distinctiveness(
                 reader, cams, describer, whiten=cfg.whiten, whiten_dim=cfg.whiten_dim, config=sel_cfg.distinct_config(),
-                indices={t: {r["frame_index"] for r in recs_by_topic.get(t, [])} for t in cams})
+                indices={t: {r["frame_index"] for r in recs_by_topic.get(t, [])} for t in cams}, known=known)
         selections: dict[str, Selection] = {}
         for t in cams:
             recs = recs_by_topic.get(t, [])
