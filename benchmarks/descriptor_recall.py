@@ -9,9 +9,10 @@ winter frame is more similar to its own summer frame than to the summer frame 40
 away. ``ms/img`` is the time to describe one image (CPU, batch 16, all threads);
 ``ms/query`` the time to match one query against all references.
 
-DINOv2 kinds that share a preprocessing are computed from one backbone pass per batch (the
-tokens are pooled once per kind); their ``ms/img`` is the backbone time plus that kind's
-pooling time, i.e. what ``describe`` costs on its own.
+DINOv2 kinds that share a preprocessing and a network output (final or middle block) are
+computed from one backbone pass per batch (the tokens are pooled once per kind); their
+``ms/img`` is the backbone time plus that kind's pooling time, i.e. what ``describe`` costs on
+its own. Multi-scale kinds run on their own.
 
 Usage::
 
@@ -78,13 +79,13 @@ def describe_all(kinds: list[tuple[str, str, dict[str, Any]]], images: list[np.n
     groups: dict[tuple[Any, ...], list[tuple[str, Any]]] = {}
     for label, name, overrides in kinds:
         d = make_describer(name, **overrides)
-        if isinstance(d, DinoV2Describer):
-            groups.setdefault((d.resize, d.batch_size), []).append((label, d))
+        if isinstance(d, DinoV2Describer) and d.scales == (1.0,):  # one pass of the same output: shared
+            groups.setdefault((d.resize, d.batch_size, d.layer), []).append((label, d))
         else:
             t0 = time.perf_counter()
             x = d.describe(images)
             out[label] = (x, (time.perf_counter() - t0) / len(images))
-    for (resize, batch), members in groups.items():
+    for (resize, batch, _layer), members in groups.items():
         backbone = members[0][1]
         pooled: dict[str, list[np.ndarray]] = {label: [] for label, _ in members}
         pool_time: dict[str, float] = {label: 0.0 for label, _ in members}

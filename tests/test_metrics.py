@@ -280,3 +280,21 @@ def test_truth_from_positions_local_and_geographic() -> None:
     assert d < 25.0
     with pytest.raises(EvaluationError):
         truth_from_positions(np.zeros((2, 2)), np.zeros((2, 3)))
+
+
+def test_paper_protocol_three_readings() -> None:
+    # map = refs {1, 2}. q0: true {1}, best match ref 0 (discarded), q1: true {2}, best 2 (correct),
+    # q2: true {0} only (discarded: uncovered), best 2 (wrong).
+    sim = np.array([[0.9, 0.5, 0.1], [0.1, 0.2, 0.8], [0.3, 0.1, 0.7]])
+    truth = [{1}, {2}, {0}]
+    mask = np.array([False, True, True])
+    fn = evaluate_paper(sim, truth, mask, ns=(1,))
+    tn = evaluate_paper(sim, truth, mask, ns=(1,), discarded="true_negative")
+    un = evaluate_paper(sim, truth, mask, ns=(1,), discarded="uncovered_negative")
+    assert list(fn.has_match) == [True, True, True]
+    assert list(tn.has_match) == [False, True, True]  # q0's best match was discarded
+    assert list(un.has_match) == [True, True, False]  # q2 has no true place in the map
+    for res, n_pos in ((fn, 3), (tn, 2), (un, 2)):
+        np.testing.assert_allclose(res.curve.precision, [1, 1 / 2])  # q1 right (.8), q2 wrong (.7)
+        np.testing.assert_allclose(res.curve.recall, [1 / n_pos, 1 / n_pos])
+        assert res.options == {"discarded": res.options["discarded"]}

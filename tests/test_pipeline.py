@@ -185,3 +185,38 @@ def test_positions_interpolated_to_frames() -> None:
     assert np.all(np.diff(north) >= -1e-9)  # the drive goes north, with a stop
     assert north[4] == pytest.approx(north[3], abs=0.5)  # frames 3..5 stand still
     assert north[2] - north[1] == pytest.approx(5.0, abs=0.05)  # 5 m per frame (both between fixes)
+
+
+def test_evaluate_quick_trials_several_descriptors(all_scored: Path, tmp_path: Path) -> None:
+    out = tmp_path / "eval"
+    out.mkdir()
+    shutil.copyfile(all_scored, out / "reference.scored.mcap")
+    truth = tmp_path / "truth.json"
+    truth.write_text(json.dumps({"matches": [[i] for i in range(8)]}))
+    cfg = EvaluateConfig(select=SelectionConfig(keep_fraction=0.5), reference_topic=COMP, query_topic=RAW, seeds=3,
+                         descriptor="auto,thumbnail,dinov2-gem", window=FrameWindow(stride=2), max_frames=3,
+                         report=False)
+    res = evaluate(DEMO, DEMO, out, cfg, truth=truth)
+    kinds = res["descriptors"]
+    assert list(kinds) == ["thumbnail", "dinov2-gem"]  # auto chose the thumbnail (96x72 frames): described once
+    assert kinds["thumbnail"]["descriptor"]["requested"] == "auto" and kinds["thumbnail"]["requested_as"] == ["thumbnail"]
+    for kind in kinds:
+        assert (out / f"reference.{kind}.parquet").is_file() and (out / f"map.{kind}.mcap").is_file()
+        t = read_descriptors(out / f"reference.{kind}.parquet")
+        assert list(t.frame_index) == [0, 2, 4]  # stride 2, first 3 frames
+        assert kinds[kind]["full"]["frames"] == 3 and kinds[kind]["full"]["recall@1"] == 1.0
+    assert res["full"] == kinds["thumbnail"]["full"]
+    stamp = (out / "query.dinov2-gem.parquet").stat().st_mtime_ns
+    evaluate(DEMO, DEMO, out, cfg, truth=truth)  # described once: the second run reuses the cache
+    assert (out / "query.dinov2-gem.parquet").stat().st_mtime_ns == stamp
+    with pytest.raises(ConfigError, match="descriptor"):
+        EvaluateConfig(descriptor="thumbnail,nope")
+    with pytest.raises(ConfigError, match="max_frames"):
+        EvaluateConfig(max_frames=0)
+    r = subprocess.run([sys.executable, "-m", "memlog", "evaluate", "--reference", str(DEMO), "--query", str(DEMO),
+                        "--truth", str(truth), "-o", str(out), "--reference-topic", COMP, "--query-topic", RAW,
+                        "--keep-fraction", "0.5", "--descriptor", "thumbnail,dinov2-gem", "--stride", "2",
+                        "--max-frames", "3", "--seeds", "2", "--no-report"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    lines = [ln for ln in r.stdout.splitlines() if ln.startswith(("thumbnail", "dinov2-gem"))]
+    assert len(lines) == 8 and "Traceback" not in r.stderr  # 4 maps per descriptor in one table

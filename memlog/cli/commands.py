@@ -23,6 +23,7 @@ from memlog.cli.flags import (
     file_section,
     frame_window,
     int_range,
+    log_time,
     nonneg_float,
     positive_int,
     score_config,
@@ -253,10 +254,15 @@ def add_map(sub: Any) -> None:
     p.add_argument("--position-topic", help="NavSatFix/pose/odometry topic for positions (default: first found)")
     p.add_argument("--image-format", choices=["jpeg", "png"], help="encoding of raw frames (default jpeg)")
     p.add_argument("--jpeg-quality", type=int_range(1, 100), help="JPEG quality of raw frames, 1..100 (default 90)")
-    p.add_argument("--descriptor", help="reference descriptor kind (thumbnail, dinov2-cls, dinov2-gem, or none)")
+    p.add_argument("--descriptor", help="reference descriptor: auto (default: by frame size), a kind "
+                                        "(thumbnail, dinov2-gem, ...) or none")
     p.add_argument("--descriptors", help="descriptor Parquet path (default: MAP.parquet)")
     p.add_argument("--descriptor-dtype", choices=["float32", "float16"],
                    help="storage of the descriptors (default float32; float16 halves the file)")
+    p.add_argument("--no-whiten", action="store_true",
+                   help="do not fit and store a PCA-whitening of the descriptors (default: whitened)")
+    p.add_argument("--whiten-dim", type=positive_int,
+                   help="largest whitened dimension (default 512; never more than half the frames)")
     p.add_argument("--json", action="store_true", help="print the map summary as JSON")
     p.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC", help="camera topic(s) to map")
     p.add_argument("--stride", type=positive_int, help="consider every n-th frame of each topic (default 1)")
@@ -290,10 +296,14 @@ def map_config(args: argparse.Namespace) -> Any:
         if v is not None:
             flags["descriptors_path" if key == "descriptors" else key] = v
     if args.descriptor is not None:
-        if args.descriptor != "none" and args.descriptor not in DESCRIBERS:
+        if args.descriptor not in ("none", "auto") and args.descriptor not in DESCRIBERS:
             raise ConfigError(f"--descriptor: unknown descriptor {args.descriptor!r} "
-                              f"(known: {', '.join(sorted(DESCRIBERS))}, none)")
+                              f"(known: auto, {', '.join(sorted(DESCRIBERS))}, none)")
         flags["descriptor"] = None if args.descriptor == "none" else args.descriptor
+    if args.no_whiten:
+        flags["whiten"] = False
+    if args.whiten_dim is not None:
+        flags["whiten_dim"] = args.whiten_dim
     return build(MapConfig, flags, "flags", cfg) if flags else cfg
 
 
@@ -315,6 +325,11 @@ def cmd_map(args: argparse.Namespace) -> int:
     if res.crops_run is not None and res.crops_full:
         info(f"memlog: ResMem ran {res.crops_run} crops, {100 * res.crops_run / res.crops_full:.0f} % of the "
              f"{res.crops_full} scoring every frame would run")
+    if res.descriptor is not None:
+        white = res.whitening or {}
+        info(f"memlog: {res.descriptor.describe()}; "
+             + (f"whitened {white['dim_in']}->{white['dim_out']}-d (fitted on {white['n_fit']} frames, sha256 "
+                f"{white['sha256'][:12]}…)" if "sha256" in white else white.get("skipped", "not whitened")))
     info(f"memlog: wrote {res.output}" + (f" and {res.descriptors}" if res.descriptors else ""))
     if args.json:
         print(json.dumps(d, indent=2))
@@ -392,10 +407,20 @@ def add_evaluate(sub: Any) -> None:
     p.add_argument("--tolerance", type=nonneg_float, help="position truth: metres (default 25)")
     p.add_argument("-o", "--output", required=True, help="output directory (created; its parent must exist)")
     add_selection_flags(p)
-    p.add_argument("--descriptor", help="thumbnail (default), dinov2-cls or dinov2-gem")
+    p.add_argument("--descriptor", help="auto (default: by frame size), a kind (thumbnail, dinov2-gem, ...), or "
+                                        "several comma-separated (each described once and cached; one table)")
+    p.add_argument("--no-whiten", action="store_true", help="evaluate unwhitened maps (default: whitened)")
+    g = p.add_argument_group("quick trials: part of both drives")
+    g.add_argument("--start", type=log_time, metavar="TIME",
+                   help="first log time: seconds since the epoch, or +seconds after each log starts")
+    g.add_argument("--end", type=log_time, metavar="TIME", help="end of the window (exclusive), same forms")
+    g.add_argument("--stride", type=positive_int, default=1, help="every n-th frame of each drive (default 1)")
+    g.add_argument("--max-frames", type=positive_int, help="at most this many frames of each drive")
     p.add_argument("--seeds", type=positive_int, help="random baseline seeds (default 20)")
-    p.add_argument("--paper-discarded", choices=["false_negative", "true_negative"],
-                   help="paper protocol: how a query whose best match was discarded counts (default false_negative)")
+    p.add_argument("--paper-discarded", choices=["false_negative", "true_negative", "uncovered_negative"],
+                   help="paper protocol: how a query whose best match was discarded counts (default false_negative; "
+                        "true_negative drops it from the positives; uncovered_negative drops the queries with no "
+                        "true place in the map instead)")
     p.add_argument("--reference-topic", help="reference camera topic (default: the first)")
     p.add_argument("--query-topic", help="query camera topic (default: the first)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report (an older one in OUT is removed)")
@@ -420,6 +445,13 @@ def evaluate_config(args: argparse.Namespace) -> Any:
             flags[key] = v
     if args.no_report:
         flags["report"] = False
+    if args.no_whiten:
+        flags["whiten"] = False
+    if args.max_frames is not None:
+        flags["max_frames"] = args.max_frames
+    if args.start is not None or args.end is not None or args.stride != 1:
+        flags["window"] = frame_window(args, args.reference)
+        flags["query_window"] = frame_window(args, args.query)
     try:
         return build(EvaluateConfig, flags, "flags", cfg) if flags else cfg
     except ConfigError as exc:
@@ -432,12 +464,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     cfg = evaluate_config(args)
     res = evaluate(args.reference, args.query, args.output, cfg, truth=args.truth)
     rows = []
-    for name in ("full", "memorable", "uniform", "random"):
-        r = res[name]
-        rows.append([name, str(r["frames"]), fmt3(r["coverage"]), fmt3(r["auc"]), fmt3(r["recall@1"]),
-                     fmt3(r.get("recall@5")), fmt3(r["paper_protocol"]["auc"]), fmt3(r["paper_protocol"]["recall@1"]),
-                     f"{r['match_seconds_per_query'] * 1e3:.3f}"])
-    print(table(rows, ["map", "frames", "coverage", "AUC", "R@1", "R@5", "paper AUC", "paper R@1", "ms/query"]))
+    for kind, kres in res["descriptors"].items():
+        white = "whitened" if (kres.get("whitening") or {}).get("sha256") else "raw"
+        for name in ("full_unwhitened", "full", "memorable", "uniform", "random"):
+            if name not in kres:
+                continue
+            r = kres[name]
+            label = "full" if name == "full_unwhitened" else name
+            rows.append([kind, "raw" if name == "full_unwhitened" else white, label, str(r["frames"]),
+                         fmt3(r["coverage"]), fmt3(r["auc"]), fmt3(r["recall@1"]), fmt3(r.get("recall@5")),
+                         fmt3(r["paper_protocol"]["auc"]), fmt3(r["paper_protocol"]["recall@1"]),
+                         f"{r['match_seconds_per_query'] * 1e3:.3f}"])
+    print(table(rows, ["descriptor", "whitening", "map", "frames", "coverage", "AUC", "R@1", "R@5", "paper AUC",
+                       "paper R@1", "ms/query"]))
+    for kind, kres in res["descriptors"].items():
+        if kres["descriptor"]["requested"] == "auto":
+            info(f"memlog: descriptor auto -> {kind} (frames {kres['descriptor']['frame_size']}; "
+                 f"rule: {kres['descriptor']['rule']})")
     info(f"memlog: {cfg.select.label()} {res['memorable']['thresholds']}; wrote {args.output}/results.json"
          + ("" if args.no_report else f" and {args.output}/report.html"))
     return report_damage(*_unique(res.reports))

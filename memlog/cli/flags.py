@@ -199,6 +199,12 @@ def add_selection_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--dedup", type=cosine_distance, metavar="DIST",
                    help="drop kept frames within this cosine distance (thumbnail descriptor) of an already kept one "
                         "(loops, stops)")
+    g.add_argument("--dt", type=unit_interval,
+                   help="paper mode: also keep only frames whose distinctiveness (rank in the drive, 0..1) is >= DT "
+                        "(computed from the reference drive's descriptors)")
+    g.add_argument("--distinct-weight", type=nonneg_float, metavar="W",
+                   help="segment mode: weight of distinctiveness in the combined score (0 = off; with "
+                        "--weights 0,0,0 it selects by distinctiveness alone)")
 
 
 # -- builders -------------------------------------------------------------------------------------
@@ -206,7 +212,8 @@ _FLAG_OF = {
     "keep_fraction": "--keep-fraction", "spacing_m": "--spacing-m", "spacing_s": "--spacing-s",
     "segment_by": "--segment-by", "dedup": "--dedup", "select mode": "--select", "segment selection mode":
     "--select segment", "stride": "--stride", "jpeg_quality": "--jpeg-quality", "threads": "--threads",
-    "image_format": "--image-format", "tolerance": "--tolerance", "seeds": "--seeds",
+    "image_format": "--image-format", "tolerance": "--tolerance", "seeds": "--seeds", "dt": "--dt",
+    "distinct_weight": "--distinct-weight", "max_frames": "--max-frames", "whiten_dim": "--whiten-dim",
 }
 
 
@@ -243,7 +250,8 @@ def selection_config(args: argparse.Namespace, score: ScoreConfig) -> SelectionC
     cfg = build(SelectionConfig, file_section(args, "select"), where, base)
     flags: dict[str, Any] = {}
     for key, dest in (("mode", "select"), ("keep_fraction", "keep_fraction"), ("spacing_m", "spacing_m"),
-                      ("spacing_s", "spacing_s"), ("segment_by", "segment_by"), ("dedup", "dedup")):
+                      ("spacing_s", "spacing_s"), ("segment_by", "segment_by"), ("dedup", "dedup"), ("dt", "dt"),
+                      ("distinct_weight", "distinct_weight")):
         v = getattr(args, dest, None)
         if v is not None:
             flags[key] = v

@@ -37,7 +37,9 @@ class DescriptorMeta:
     ``kind`` is the registry name (``"thumbnail"``, ``"dinov2-cls"`` ...), ``version`` the
     implementation version of that kind, ``params`` the parameters that change the numbers
     (image size, pooling ...), ``model_sha256`` the sha256 of the source weights (None for
-    hand-crafted descriptors).
+    hand-crafted descriptors), ``whitening`` the sha256 of the whitening transform applied
+    after the describer (:mod:`memlog.descriptors.whitening`; None = not whitened), ``dim`` the
+    dimension after it.
     """
 
     kind: str
@@ -45,6 +47,7 @@ class DescriptorMeta:
     dim: int
     model_sha256: str | None = None
     params: dict[str, Any] = field(default_factory=dict)
+    whitening: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict."""
@@ -54,21 +57,37 @@ class DescriptorMeta:
     def from_dict(cls, m: Mapping[str, Any]) -> "DescriptorMeta":
         """Inverse of :meth:`to_dict`."""
         return cls(kind=str(m["kind"]), version=str(m["version"]), dim=int(m["dim"]),
-                   model_sha256=m.get("model_sha256"), params=dict(m.get("params") or {}))
+                   model_sha256=m.get("model_sha256"), params=dict(m.get("params") or {}),
+                   whitening=m.get("whitening") or None)
 
     def describe(self) -> str:
         """One line for messages: kind, version, size, model hash and parameters."""
         sha = f"sha256 {self.model_sha256[:12]}…" if self.model_sha256 else "no model"
         params = ", ".join(f"{k}={v}" for k, v in sorted(self.params.items()))
-        return f"{self.kind} v{self.version} ({self.dim}-d, {sha}{'; ' + params if params else ''})"
+        white = f", whitened sha256 {self.whitening[:12]}…" if self.whitening else ", not whitened"
+        return f"{self.kind} v{self.version} ({self.dim}-d{white}, {sha}{'; ' + params if params else ''})"
 
 
 def check_compatible(map_meta: DescriptorMeta, query_meta: DescriptorMeta) -> None:
     """Raise :class:`DescriptorError` unless both were made by the same describer.
 
-    Compares kind, version, dim, model sha256 and params, e.g. "map built with dinov2-cls v1
-    (384-d, sha256 198644e37de3…), query described with thumbnail v1 (2048-d, no model)".
+    Compares kind, version, dim, model sha256, params and the whitening transform, e.g. "map
+    built with dinov2-cls v1 (384-d, sha256 198644e37de3…), query described with thumbnail v1
+    (2048-d, no model)". A whitened map and a query described without its transform (or with
+    another one) are refused with a message that says so.
     """
+    if map_meta.whitening != query_meta.whitening:
+        if map_meta.whitening and not query_meta.whitening:
+            why = (f"the map's descriptors are whitened (transform sha256 {map_meta.whitening[:12]}…) but the query "
+                   "descriptors were described without whitening")
+        elif query_meta.whitening and not map_meta.whitening:
+            why = (f"the query descriptors are whitened (transform sha256 {query_meta.whitening[:12]}…) but the "
+                   "map's are not")
+        else:
+            why = (f"the map's descriptors are whitened with transform sha256 {str(map_meta.whitening)[:12]}… but "
+                   f"the query's with {str(query_meta.whitening)[:12]}…")
+        raise DescriptorError(f"{why}; describe the query with the map's own transform "
+                              "(memlog localize does this from the map file)")
     fields = ("kind", "version", "dim", "model_sha256", "params")
     diff = [f for f in fields if getattr(map_meta, f) != getattr(query_meta, f)]
     if diff:

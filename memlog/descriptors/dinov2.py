@@ -8,7 +8,11 @@ side to 224 with INTER_AREA, zero padding centred before normalisation); memlog'
 
 Descriptors (384-d, L2-normalised): ``pooling="cls"`` is the CLS token; ``pooling="gem"`` is
 generalised-mean pooling (``p = 3``) of the patch tokens clamped at ``1e-6`` (GeM needs
-non-negative inputs; in letterbox mode only patches whose centre lies on the image count).
+non-negative inputs; in letterbox mode only patches whose centre lies on the image count);
+``pooling="mean"`` the plain mean of the patch tokens. ``layer`` pools the output of a middle
+transformer block (:data:`~memlog.models.dinov2.MID_LAYERS`) instead of the final LayerNorm
+output. ``scales`` describes centred crops of these relative sizes (1.0 = the whole frame) and
+sums their L2-normalised descriptors (multi-scale); each scale costs one more network pass.
 """
 
 from __future__ import annotations
@@ -29,14 +33,18 @@ from memlog.models.dinov2 import (
     IMAGENET_STD_RGB,
     INPUT_NAME,
     INPUT_SIZE,
+    MID_LAYERS,
     PATCH,
     SOURCE_SHA256,
     TOKENS_OUTPUT,
     WIDTH,
     dinov2_session,
+    layer_output,
 )
 
-__all__ = ["DinoV2Describer", "preprocess", "pool_tokens"]
+__all__ = ["DinoV2Describer", "preprocess", "pool_tokens", "centre_crop", "POOLINGS"]
+
+POOLINGS = ("cls", "gem", "mean")
 
 F32 = npt.NDArray[np.float32]
 IMAGENET_MEAN = np.array(IMAGENET_MEAN_RGB, dtype=np.float32)
@@ -77,8 +85,18 @@ def preprocess(images_bgr: Sequence[npt.NDArray[Any]], resize: str = "stretch") 
     return out, masks
 
 
+def centre_crop(img: npt.NDArray[Any], scale: float) -> npt.NDArray[Any]:
+    """The centred crop of ``img`` with ``scale`` times its width and height (at least 1 px)."""
+    if scale >= 1.0:
+        return img
+    h, w = img.shape[:2]
+    ch, cw = max(1, int(round(h * scale))), max(1, int(round(w * scale)))
+    top, left = (h - ch) // 2, (w - cw) // 2
+    return img[top : top + ch, left : left + cw]
+
+
 class DinoV2Describer(Describer):
-    """CLS-token or GeM-pooled DINOv2 ViT-S/14 descriptor (384-d).
+    """CLS-token, GeM- or mean-pooled DINOv2 ViT-S/14 descriptor (384-d).
 
     ``model_sha256`` is the sha256 of the *source* weights (:data:`SOURCE_SHA256`), which is
     what determines the numbers (the edited file's own hash depends on the onnx version).
@@ -100,9 +118,16 @@ class DinoV2Describer(Describer):
         threads: int | None = None,
         model_path: str | os.PathLike[str] | None = None,
         device: str = "auto",
+        layer: int | None = None,
+        scales: Sequence[float] = (1.0,),
     ) -> None:
-        if pooling not in ("cls", "gem"):
-            raise DescriptorError(f"pooling must be 'cls' or 'gem', not {pooling!r}")
+        if pooling not in POOLINGS:
+            raise DescriptorError(f"pooling must be one of {', '.join(POOLINGS)}, not {pooling!r}")
+        if layer is not None and layer not in MID_LAYERS:
+            raise DescriptorError(f"layer must be one of {MID_LAYERS} (the exposed middle blocks) or None, not {layer!r}")
+        sc = tuple(float(x) for x in scales)
+        if not sc or any(not (0.0 < x <= 1.0) for x in sc):
+            raise DescriptorError(f"scales must be crop sizes in (0, 1], got {scales!r}")
         if resize not in ("stretch", "letterbox"):
             raise DescriptorError(f"resize must be 'stretch' or 'letterbox', not {resize!r}")
         if gem_p <= 0 or batch_size < 1:
@@ -112,6 +137,9 @@ class DinoV2Describer(Describer):
         self.gem_p = float(gem_p)
         self.resize = resize
         self.batch_size = int(batch_size)
+        self.layer = layer
+        self.scales = sc
+        self._output = TOKENS_OUTPUT if layer is None else layer_output(layer)
         self.model_path = Path(model_path) if model_path is not None else None
         self.model_sha256 = SOURCE_SHA256
         self._session = dinov2_session(self.model_path, threads=threads, device=device)
@@ -121,6 +149,10 @@ class DinoV2Describer(Describer):
         p: dict[str, Any] = {"pooling": self.pooling, "resize": self.resize, "input_size": INPUT_SIZE}
         if self.pooling == "gem":
             p["gem_p"] = self.gem_p
+        if self.layer is not None:
+            p["layer"] = self.layer
+        if self.scales != (1.0,):
+            p["scales"] = list(self.scales)
         return p
 
     def tokens(self, images_bgr: Sequence[npt.NDArray[Any]]) -> F32:
@@ -129,9 +161,10 @@ class DinoV2Describer(Describer):
         return self.forward(x)
 
     def forward(self, x: F32) -> F32:
-        """Backbone tokens ``[B, 257, 384]`` of an input batch made by :func:`preprocess`."""
+        """Tokens ``[B, 257, 384]`` (of the final output, or of block ``layer``) of an input batch
+        made by :func:`preprocess`."""
         try:
-            out: F32 = self._session.run([TOKENS_OUTPUT], {INPUT_NAME: x})[0]
+            out: F32 = self._session.run([self._output], {INPUT_NAME: x})[0]
         except Exception as exc:
             raise DescriptorError(f"DINOv2 inference failed: {exc}") from None
         return out
@@ -140,8 +173,12 @@ class DinoV2Describer(Describer):
         imgs = as_bgr_list(images_bgr)
         out = np.zeros((len(imgs), WIDTH), dtype=np.float32)
         for start in range(0, len(imgs), self.batch_size):
-            x, mask = preprocess(imgs[start : start + self.batch_size], self.resize)
-            out[start : start + len(x)] = pool_tokens(self.forward(x), self.pooling, self.gem_p, mask)
+            group = imgs[start : start + self.batch_size]
+            acc = np.zeros((len(group), WIDTH), dtype=np.float32)
+            for scale in self.scales:
+                x, mask = preprocess([centre_crop(im, scale) for im in group], self.resize)
+                acc += pool_tokens(self.forward(x), self.pooling, self.gem_p, mask)
+            out[start : start + len(group)] = acc if len(self.scales) == 1 else l2_normalize(acc)
         return out
 
 
@@ -151,16 +188,19 @@ def pool_tokens(
     """Global descriptors ``[B, 384]`` (L2-normalised) from backbone tokens ``[B, 257, 384]``.
 
     ``"cls"``: the CLS token. ``"gem"``: ``(mean_j max(t_j, 1e-6)^p)^(1/p)`` over the patch
-    tokens ``j`` (those with ``mask`` True when given).
+    tokens ``j`` (those with ``mask`` True when given). ``"mean"``: the mean of those tokens.
     """
     t = np.asarray(tokens, dtype=np.float32)
     if t.ndim != 3 or t.shape[1] < 2:
         raise DescriptorError(f"tokens must be [B, 1 + patches, dim], got shape {t.shape}")
     if pooling == "cls":
         return l2_normalize(t[:, 0, :])
-    if pooling != "gem":
-        raise DescriptorError(f"pooling must be 'cls' or 'gem', not {pooling!r}")
+    if pooling not in POOLINGS:
+        raise DescriptorError(f"pooling must be one of {', '.join(POOLINGS)}, not {pooling!r}")
+    w = np.ones(t.shape[:2])[:, 1:] if mask is None else np.asarray(mask, dtype=np.float64)
+    if pooling == "mean":
+        tokens_sum = (t[:, 1:, :].astype(np.float64) * w[:, :, None]).sum(axis=1)
+        return l2_normalize(tokens_sum / np.maximum(w.sum(axis=1), 1.0)[:, None])
     patches = np.maximum(t[:, 1:, :], 1e-6).astype(np.float64) ** gem_p
-    w = np.ones(patches.shape[:2]) if mask is None else np.asarray(mask, dtype=np.float64)
     mean = (patches * w[:, :, None]).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)[:, None]
     return l2_normalize(mean ** (1.0 / gem_p))

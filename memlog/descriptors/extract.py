@@ -2,6 +2,9 @@
 
 Shared by ``memlog map`` (reference descriptors of the kept frames), ``memlog localize`` (query
 descriptors) and ``memlog evaluate``: frames stream in batches, so memory stays bounded.
+:class:`ReferenceDescribing` is the map's side: it describes every frame of the reference drive
+while the map is written, fits the whitening on all of them (bounded memory) and keeps the
+descriptors of the kept frames only.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import numpy as np
 
 from memlog.descriptors.base import Describer
 from memlog.descriptors.table import DescriptorTable
+from memlog.descriptors.whitening import WhitenedDescriber, Whitening, WhiteningFitter
 from memlog.errors import ImageDecodeError
 from memlog.io.base import FrameWindow, LogReader
 from memlog.io.frame import Frame
@@ -23,7 +27,7 @@ from memlog.io.positions import PositionTrack, read_track
 from memlog.io.records import ReadReport
 from memlog.progress import progress
 
-__all__ = ["describe_frames", "build_table", "describe_log"]
+__all__ = ["describe_frames", "build_table", "describe_log", "ReferenceDescribing"]
 
 
 def _batches(frames: Iterable[Frame], n: int) -> Iterator[list[Frame]]:
@@ -67,8 +71,10 @@ def build_table(
     scores: Mapping[str, Mapping[int, Mapping[str, Any]]] | None = None,
     track: PositionTrack | None = None,
     extra: dict[str, Any] | None = None,
+    whitening: Whitening | None = None,
 ) -> DescriptorTable:
-    """A DescriptorTable of described frames, with their scores and interpolated positions."""
+    """A DescriptorTable of described frames, with their scores and interpolated positions.
+    With ``whitening``, ``descriptors`` are already whitened by it and the table carries it."""
     def score(name: str) -> np.ndarray:
         if scores is None:
             return np.full(len(frames), np.nan)
@@ -97,10 +103,11 @@ def build_table(
         log_time_ns=np.array([f.log_time_ns for f in frames], dtype=np.int64),
         stamp_ns=np.array([f.stamp_ns for f in frames], dtype=np.int64),
         descriptors=descriptors,
-        meta=describer.meta(),
+        meta=(describer if whitening is None else WhitenedDescriber(describer, whitening)).meta(),
         ms=score("ms"), ss=score("ss"), es=score("es"),
         positions=positions,
         extra=ex,
+        whitening=whitening,
     )
 
 
@@ -126,3 +133,128 @@ def describe_log(
         kept, desc = describe_frames(frames, describer, reader)
         extra = {"log": str(reader.path), "log_identity": log_identity(log), "window": w.to_dict()}
         return build_table(kept, desc, describer, scores=scores, track=track, extra=extra), reader.report
+
+
+class ReferenceDescribing:
+    """Describes reference frames in batches while a map is written (bounded memory).
+
+    ``add(frame, keep)``: every frame added feeds the whitening fit when ``fit_whitening`` is
+    set (so the transform is learned from the whole drive, not only the kept frames); only kept
+    frames' descriptors are stored (frames without their pixels). ``whitening``: a transform
+    fitted beforehand (e.g. with the distinctiveness pass) to apply instead of fitting one;
+    ``known``: raw descriptors already computed, by ``(topic, frame index)``, used instead of
+    describing again. :meth:`result` returns the kept frames, their (whitened) descriptors and
+    the transform (None without whitening).
+    """
+
+    def __init__(self, describer: Describer, reader: LogReader, *, fit_whitening: bool = False,
+                 whiten_dim: int | None = None, whitening: Whitening | None = None,
+                 known: Mapping[tuple[str, int], np.ndarray] | None = None, batch: int = 16) -> None:
+        self.describer, self.reader, self.batch = describer, reader, batch
+        self.whitening = whitening
+        self.whiten_dim = whiten_dim
+        self.fitter = WhiteningFitter(describer.dim) if fit_whitening and whitening is None else None
+        self.known = known or {}
+        self.frames: list[Frame] = []
+        self.rows: list[np.ndarray] = []
+        self._pending: list[tuple[Frame, Any, bool]] = []
+
+    @property
+    def wants_all_frames(self) -> bool:
+        """Whether frames that are not kept must be added too (to fit the whitening)."""
+        return self.fitter is not None
+
+    def add(self, frame: Frame, keep: bool) -> None:
+        if not keep and self.fitter is None:
+            return
+        row = self.known.get((frame.topic, frame.index))
+        if row is None:
+            try:
+                img = frame.decode_bgr()
+            except ImageDecodeError as exc:
+                if keep:  # a frame that is not kept was reported by the scoring pass already
+                    self.reader.decode_error(frame, exc)
+                return
+        self._pending.append((_stripped(frame) if keep else frame, row if row is not None else img, keep))
+        if len(self._pending) >= self.batch:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self._pending:
+            return
+        todo = [k for k, (_, v, _) in enumerate(self._pending) if v.ndim != 1]
+        desc = np.zeros((len(self._pending), self.describer.dim), np.float32)
+        if todo:
+            desc[todo] = self.describer.describe([self._pending[k][1] for k in todo])
+        for k, (_, v, _) in enumerate(self._pending):
+            if v.ndim == 1:
+                desc[k] = v
+        if self.fitter is not None:
+            self.fitter.add(desc)
+        keep = np.array([kp for _, _, kp in self._pending], dtype=bool)
+        self.rows.append(desc[keep])
+        self.frames.extend(f for f, _, kp in self._pending if kp)
+        self._pending.clear()
+
+    def result(self, source: str = "") -> tuple[list[Frame], np.ndarray, Whitening | None]:
+        self.flush()
+        desc = np.concatenate(self.rows) if self.rows else np.zeros((0, self.describer.dim), np.float32)
+        if self.fitter is not None:
+            self.whitening = self.fitter.fit_or_none(self.whiten_dim, source=source)
+        if self.whitening is not None:
+            desc = self.whitening.apply(desc)
+        return self.frames, desc, self.whitening
+
+
+def _stripped(frame: Frame) -> Frame:
+    """``frame`` without its pixels (kept for the descriptor table's rows)."""
+    import dataclasses
+
+    from memlog.io.types import ImagePayload
+
+    return dataclasses.replace(frame, payload=ImagePayload(frame.payload.kind, frame.payload.encoding, b""))
+
+
+def drive_distinctiveness(
+    reader: LogReader, topics: list[str], describer: Describer, *, whiten: bool, whiten_dim: int | None,
+    config: Any = None, indices: Mapping[str, set[int]] | None = None,
+    known: Mapping[tuple[str, int], np.ndarray] | None = None,
+) -> tuple[dict[str, dict[int, float]], dict[tuple[str, int], np.ndarray], Whitening | None]:
+    """Distinctiveness of every frame of ``topics`` (only those in ``indices[topic]`` when given:
+    the frames the selection sees), computed on the describer's descriptors of the whole drive,
+    whitened by a transform fitted on them when ``whiten``
+    (:mod:`memlog.selection.distinctiveness`). Returns DS by topic and frame index, the raw
+    descriptors by ``(topic, frame index)`` (so the map pass need not describe again) and the
+    transform. ``known``: raw descriptors already computed (not described again)."""
+    from memlog.selection.distinctiveness import distinctiveness
+
+    raw: dict[tuple[str, int], np.ndarray] = {}
+    per_topic: dict[str, tuple[list[int], np.ndarray]] = {}
+    fitter = WhiteningFitter(describer.dim) if whiten else None
+    for t in topics:
+        have = {i: v for (tt, i), v in (known or {}).items() if tt == t}
+        want = None if indices is None else set(indices.get(t, set()))
+        if have and want is not None and want <= set(have):
+            kept_idx = sorted(want)
+            desc = np.stack([have[i] for i in kept_idx]).astype(np.float32) if kept_idx else \
+                np.zeros((0, describer.dim), np.float32)
+            per_topic[t] = (kept_idx, desc)
+            raw.update({(t, i): desc[k] for k, i in enumerate(kept_idx)})
+            if fitter is not None:
+                fitter.add(desc)
+            continue
+        wanted = None if want is None else {t: want}
+        total = reader.count_frames(FrameWindow((t,))) if wanted is None else len(want or ())
+        frames = progress(reader.frames([t], indices=wanted), total=total, desc="describe", unit="frame")
+        kept, desc = describe_frames(frames, describer, None)
+        per_topic[t] = ([f.index for f in kept], desc)
+        raw.update({(t, f.index): desc[k] for k, f in enumerate(kept)})
+        if fitter is not None:
+            fitter.add(desc)
+    whitening = fitter.fit_or_none(whiten_dim, f"{reader.path} ({', '.join(topics)})") if fitter is not None else None
+    ds: dict[str, dict[int, float]] = {}
+    for t, (idx, desc) in per_topic.items():
+        d = whitening.apply(desc) if whitening is not None else desc
+        vals = distinctiveness(d, config) if len(idx) else np.zeros(0)
+        ds[t] = {i: float(v) for i, v in zip(idx, vals)}
+    return ds, raw, whitening

@@ -39,6 +39,25 @@ DESCRIBERS: dict[str, dict[str, Any]] = {
         "resize": "stretch",
         "batch_size": 16,
     },
+    # GeM over the patch tokens of a middle block (the 8th of 12): the best of blocks 6/8/10 x
+    # cls/gem/mean on the Nordland slice (benchmarks/descriptor_table.py)
+    "dinov2-gem-l7": {
+        "class": "dinov2",
+        "pooling": "gem",
+        "gem_p": 3.0,
+        "layer": 7,
+        "resize": "stretch",
+        "batch_size": 16,
+    },
+    # multi-scale: the whole frame plus its centred crop of 60 % (two network passes)
+    "dinov2-gem-ms": {
+        "class": "dinov2",
+        "pooling": "gem",
+        "gem_p": 3.0,
+        "scales": (1.0, 0.6),
+        "resize": "stretch",
+        "batch_size": 16,
+    },
 }
 
 

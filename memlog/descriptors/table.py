@@ -14,6 +14,7 @@ import numpy as np
 import numpy.typing as npt
 
 from memlog.descriptors.base import DescriptorMeta
+from memlog.descriptors.whitening import Whitening
 from memlog.errors import DescriptorError
 
 __all__ = ["DescriptorTable", "POSITION_COLUMNS", "SCORE_COLUMNS"]
@@ -33,6 +34,8 @@ class DescriptorTable:
     ``descriptors`` is ``[N, dim]`` float32; ``ms``/``ss``/``es`` are float64 with NaN for
     "not scored"; ``positions`` maps column names of one :data:`POSITION_COLUMNS` set to
     float64 arrays (NaN = unknown). ``extra`` is caller metadata stored as JSON.
+    ``whitening`` is the transform the descriptors were whitened with when the table carries it
+    (a map does; a query table records only its sha256 in ``meta.whitening``).
     """
 
     topic: list[str]
@@ -47,8 +50,13 @@ class DescriptorTable:
     positions: dict[str, F64] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
     memlog_version: str | None = None
+    whitening: Whitening | None = None
 
     def __post_init__(self) -> None:
+        if self.whitening is not None and (self.whitening.sha256 != self.meta.whitening
+                                           or self.whitening.dim_out != self.meta.dim):
+            raise DescriptorError(f"the table's whitening transform ({self.whitening.describe()}) is not the one "
+                                  f"its metadata names ({self.meta.describe()})")
         self.descriptors = np.ascontiguousarray(self.descriptors, dtype=np.float32)
         if self.descriptors.ndim != 2:
             raise DescriptorError(f"descriptors must be [N, dim], got shape {self.descriptors.shape}")

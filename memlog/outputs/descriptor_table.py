@@ -20,6 +20,9 @@ float16 storage (``dtype="float16"``) halves the file; the file says so in ``mem
 The schema metadata records what made the descriptors (``memlog.kind``, ``memlog.version``,
 ``memlog.dim``, ``memlog.model_sha256``, ``memlog.params`` (JSON), ``memlog.memlog_version``)
 and ``memlog.extra``: a JSON object of whatever the caller adds (source log, thresholds ...).
+Whitened descriptors add ``memlog.whitening_sha256`` (the transform's sha256) and, for a map,
+``memlog.whitening``: the transform itself (JSON, arrays base64; checked against its sha256 on
+reading, see :mod:`memlog.descriptors.whitening`).
 Files are written atomically (temporary file in the same directory, then ``os.replace``).
 """
 
@@ -39,6 +42,7 @@ import pyarrow.parquet as pq
 from memlog._version import __version__
 from memlog.descriptors.base import DescriptorMeta
 from memlog.descriptors.table import POSITION_COLUMNS, SCORE_COLUMNS, DescriptorTable
+from memlog.descriptors.whitening import Whitening
 from memlog.errors import DescriptorError
 from memlog.io.atomic import atomic_output
 
@@ -54,12 +58,19 @@ ROW_GROUP_BYTES = 1 << 24  # descriptor bytes per Parquet row group (and per rea
 FLOAT16_MAX = float(np.finfo(np.float16).max)
 
 
-def _meta_to_schema(meta: DescriptorMeta, extra: Mapping[str, Any], memlog_version: str) -> dict[bytes, bytes]:
+def _meta_to_schema(meta: DescriptorMeta, extra: Mapping[str, Any], memlog_version: str,
+                    whitening: Whitening | None = None) -> dict[bytes, bytes]:
     def enc(value: Any) -> bytes:
         return json.dumps(value, sort_keys=True).encode()
 
+    white: dict[bytes, bytes] = {}
+    if meta.whitening:
+        white[b"memlog.whitening_sha256"] = meta.whitening.encode()
+    if whitening is not None:
+        white[b"memlog.whitening"] = whitening.to_json().encode()
     try:
         return {
+            **white,
             b"memlog.kind": meta.kind.encode(),
             b"memlog.version": meta.version.encode(),
             b"memlog.dim": str(meta.dim).encode(),
@@ -112,7 +123,7 @@ def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable, *, d
         for name in cols:
             if name in table.positions:
                 add(name, pa.array(table.positions[name], type=pa.float64(), from_pandas=True))
-    schema_meta = _meta_to_schema(table.meta, table.extra, table.memlog_version or __version__)
+    schema_meta = _meta_to_schema(table.meta, table.extra, table.memlog_version or __version__, table.whitening)
     schema_meta[b"memlog.dtype"] = dtype.encode()
     pa_table = pa.Table.from_arrays(arrays, schema=pa.schema(fields, metadata=schema_meta))
     item = np.dtype(dtype).itemsize
@@ -126,7 +137,9 @@ def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable, *, d
     return target
 
 
-def _meta_from_schema(md: Mapping[bytes, bytes] | None, path: Path) -> tuple[DescriptorMeta, dict[str, Any], str]:
+def _meta_from_schema(
+    md: Mapping[bytes, bytes] | None, path: Path
+) -> tuple[DescriptorMeta, dict[str, Any], str, Whitening | None]:
     if not md or b"memlog.kind" not in md:
         raise DescriptorError(f"{path} is not a memlog descriptor table (no memlog schema metadata)")
     try:
@@ -137,12 +150,24 @@ def _meta_from_schema(md: Mapping[bytes, bytes] | None, path: Path) -> tuple[Des
             dim=int(md[b"memlog.dim"]),
             model_sha256=sha or None,
             params=json.loads(md.get(b"memlog.params", b"{}")),
+            whitening=md.get(b"memlog.whitening_sha256", b"").decode() or None,
         )
         extra = json.loads(md.get(b"memlog.extra", b"{}"))
         version = md.get(b"memlog.memlog_version", b"").decode()
+        white_json = md.get(b"memlog.whitening")
+        white = None if white_json is None else json.loads(white_json)
     except (KeyError, ValueError, UnicodeDecodeError) as exc:
         raise DescriptorError(f"{path} has invalid memlog metadata: {exc}") from None
-    return meta, extra, version
+    whitening = None
+    if white is not None:
+        try:
+            whitening = Whitening.from_dict(white)
+        except DescriptorError as exc:
+            raise DescriptorError(f"{path}: {exc}") from None
+        if whitening.sha256 != meta.whitening:
+            raise DescriptorError(f"{path}: the stored whitening transform (sha256 {whitening.sha256[:12]}…) is not "
+                                  f"the one the descriptors name ({str(meta.whitening)[:12]}…)")
+    return meta, extra, version, whitening
 
 
 def stored_dtype(path: str | os.PathLike[str]) -> str:
@@ -156,7 +181,7 @@ def stored_dtype(path: str | os.PathLike[str]) -> str:
         schema = pq.read_schema(p)
     except (OSError, pa.ArrowException) as exc:
         raise DescriptorError(f"could not read descriptor table {p}: {exc}") from None
-    meta, _extra, _version = _meta_from_schema(schema.metadata, p)
+    meta, _extra, _version, _white = _meta_from_schema(schema.metadata, p)
     return _check_descriptor_field(schema, meta.dim, p)
 
 
@@ -209,7 +234,7 @@ def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
     try:
         with pq.ParquetFile(p, pre_buffer=False) as pf:
             schema = pf.schema_arrow
-            meta, extra, version = _meta_from_schema(schema.metadata, p)
+            meta, extra, version, whitening = _meta_from_schema(schema.metadata, p)
             required = ("topic", "frame_index", "log_time_ns", "stamp_ns", "descriptor")
             missing = [c for c in required if c not in schema.names]
             if missing:
@@ -246,6 +271,7 @@ def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
         positions=positions,
         extra=extra,
         memlog_version=version or None,
+        whitening=whitening,
     )
 
 

@@ -32,6 +32,12 @@ class SelectionConfig:
     distance of an already kept one (descriptor: the thumbnail). ``min_ss``/``min_ms``/``min_es``,
     ``weights``, ``combine``, ``view_distance``: segment mode's tuning (defaults chosen on the
     shared Nordland slice, see :mod:`memlog.selection.segment`).
+
+    Distinctiveness (:mod:`memlog.selection.distinctiveness`), a fourth criterion computed from
+    the reference drive's (whitened) descriptors: ``dt`` is its threshold in paper mode (keep
+    DS >= dt), ``distinct_weight`` its weight in segment mode's combined score;
+    ``distinct_window``/``distinct_exclusion`` (rows) say what counts as the frame's own place
+    and as a distant part of the drive.
     """
 
     mode: Literal["segment", "paper"] = "segment"
@@ -49,6 +55,10 @@ class SelectionConfig:
     weights: tuple[float, float, float] = tuple(SELECTORS["segment"]["weights"])
     combine: Literal["geometric", "rank"] = SELECTORS["segment"]["combine"]
     view_distance: float = float(SELECTORS["segment"]["view_distance"])
+    dt: float | None = None
+    distinct_weight: float = 0.0
+    distinct_window: int = 2
+    distinct_exclusion: int = 10
 
     def __post_init__(self) -> None:
         if self.mode not in ("segment", "paper"):
@@ -72,6 +82,21 @@ class SelectionConfig:
             raise ConfigError(f"give one of keep_fraction, spacing_m, spacing_s (got {', '.join(sizes)})")
         if self.dedup is not None:
             RedundancyConfig(dup_distance=self.dedup)  # checks the range
+        if self.dt is not None:
+            v = finite_number("dt", self.dt)
+            if not 0.0 <= v <= 1.0:
+                raise ConfigError(f"dt must be within [0, 1], got {v}")
+            if self.mode != "paper":
+                raise ConfigError("dt (distinctiveness threshold) needs the paper selection mode; segment mode "
+                                  "weighs distinctiveness with distinct_weight")
+            if self.keep_fraction is not None:
+                raise ConfigError("dt cannot be combined with keep_fraction (calibrated thresholds): give the "
+                                  "thresholds, or use segment mode with distinct_weight")
+        if finite_number("distinct_weight", self.distinct_weight) < 0:
+            raise ConfigError(f"distinct_weight must be >= 0, got {self.distinct_weight}")
+        if self.distinct_weight > 0 and self.mode != "segment":
+            raise ConfigError("distinct_weight needs the segment selection mode; paper mode uses dt")
+        self.distinct_config()  # checks window/exclusion
         if self.mode == "segment":
             self.segment_settings()  # checks by/size/minimums together
 
@@ -82,14 +107,28 @@ class SelectionConfig:
         return self.dedup is not None or (self.mode == "segment" and self.segment_by == "view")
 
     @property
+    def needs_distinctiveness(self) -> bool:
+        """Whether selecting needs the distinctiveness of every frame (descriptors of the whole drive)."""
+        return self.dt is not None or (self.mode == "segment" and self.distinct_weight > 0)
+
+    def distinct_config(self) -> Any:
+        """Settings of :func:`~memlog.selection.distinctiveness.distinctiveness`."""
+        from memlog.selection.distinctiveness import DistinctConfig
+
+        return DistinctConfig(window=self.distinct_window, exclusion=self.distinct_exclusion)
+
+    @property
     def needs_all_scores(self) -> bool:
         """Whether selecting needs every score of every frame (segment mode, calibration)."""
         return self.mode == "segment" or self.keep_fraction is not None
 
     @property
     def thresholds(self) -> dict[str, float]:
-        """The paper rule's thresholds."""
-        return {"mt": self.mt, "st": self.st, "et": self.et}
+        """The paper rule's thresholds (``dt`` only when set)."""
+        th = {"mt": self.mt, "st": self.st, "et": self.et}
+        if self.dt is not None:
+            th["dt"] = self.dt
+        return th
 
     def segment_settings(self) -> dict[str, Any]:
         """Settings of the segment selector (:class:`~memlog.selection.segment.SegmentConfig`)."""
@@ -98,6 +137,7 @@ class SelectionConfig:
         kw: dict[str, Any] = {
             "by": self.segment_by, "min_ms": self.min_ms, "min_ss": self.min_ss, "min_es": self.min_es,
             "weights": tuple(self.weights), "combine": self.combine, "view_distance": self.view_distance,
+            "distinct_weight": self.distinct_weight,
         }
         if self.keep_fraction is not None:
             kw["keep_fraction"] = self.keep_fraction

@@ -19,6 +19,10 @@ Each segment keeps its best frame by a combined score among the frames that pass
 minimum thresholds ``min_ms``/``min_ss``/``min_es`` (NaN fails); a segment none of whose
 frames passes is dropped and reported as a :class:`~memlog.selection.table.Gap`.
 
+Distinctiveness (``distinct_weight`` > 0; the table's ``ds`` column, see
+:mod:`memlog.selection.distinctiveness`) enters the combined score as a fourth criterion with
+that weight (``weights=(0, 0, 0)`` with a positive ``distinct_weight``: distinctiveness alone).
+
 Combined score. The default ``combine="geometric"`` is the weighted geometric mean of the raw
 scores, (MS^a SS^b ES^c)^(1/(a+b+c)); its per-segment argmax does not change when one criterion
 is rescaled by a constant (so ES being low everywhere on small frames does not matter), and a
@@ -74,6 +78,7 @@ class SegmentConfig:
     min_es: float = 0.0
     weights: tuple[float, float, float] = (1.0, 1.0, 1.0)  # (ms, ss, es)
     combine: Combine = "geometric"
+    distinct_weight: float = 0.0
 
     def __post_init__(self) -> None:
         if self.by not in _BY:
@@ -116,8 +121,10 @@ class SegmentConfig:
         if len(w) != 3:
             raise ConfigError(f"weights must be three numbers (ms, ss, es), got {self.weights!r}")
         wf = [finite_number("weight", x) for x in w]
-        if min(wf) < 0 or sum(wf) <= 0:
-            raise ConfigError(f"weights must be >= 0 with a positive sum, got {self.weights!r}")
+        dw = finite_number("distinct_weight", self.distinct_weight)
+        if min(wf) < 0 or dw < 0 or sum(wf) + dw <= 0:
+            raise ConfigError(f"weights must be >= 0 with a positive sum (distinct_weight included), got "
+                              f"{self.weights!r} and distinct_weight {self.distinct_weight!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """Settings as a plain dict."""
@@ -145,28 +152,36 @@ def combined_score(
     table: ScoreTable,
     weights: tuple[float, float, float] = (1.0, 1.0, 1.0),
     combine: Combine = "rank",
+    distinct_weight: float = 0.0,
 ) -> NDArray[np.float64]:
-    """Per-frame combined score of (MS, SS, ES) with weights (ms, ss, es); NaN if any used
-    score is NaN. See the module docstring for the choice."""
+    """Per-frame combined score of (MS, SS, ES) with weights (ms, ss, es), and of the
+    distinctiveness DS with ``distinct_weight``; NaN if any used score is NaN. See the module
+    docstring for the choice."""
+    if distinct_weight > 0 and table.ds is None:
+        raise ConfigError("distinct_weight needs the table's distinctiveness (ds) column")
     if combine == "geometric":
-        return geometric_score(table.ms, table.ss, table.es, weights)
+        return geometric_score(table.ms, table.ss, table.es, weights, table.ds, distinct_weight)
     if combine == "rank":
-        w = np.asarray(weights, dtype=np.float64)
-        used = [i for i in range(3) if w[i] > 0]
+        w = np.asarray(tuple(weights) + (distinct_weight,), dtype=np.float64)
+        nan = np.full(table.n, np.nan)
+        sources = (table.ms, table.ss, table.es, table.ds if table.ds is not None else nan)
+        used = [i for i in range(4) if w[i] > 0]
         wu = w[used][:, None] / w[used].sum()
-        ranks = np.stack([percentile_ranks((table.ms, table.ss, table.es)[i]) for i in used])
+        ranks = np.stack([percentile_ranks(sources[i]) for i in used])
         return np.asarray((wu * ranks).sum(axis=0), dtype=np.float64)
     raise ConfigError(f"combine must be one of {_COMBINE}, got {combine!r}")
 
 
 def geometric_score(ms: ArrayLike, ss: ArrayLike, es: ArrayLike,
-                    weights: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> NDArray[np.float64]:
-    """The weighted geometric mean (MS^a SS^b ES^c)^(1/(a+b+c)), element-wise; increasing in
-    each score, so bounds on MS give bounds on it (the staged selection relies on this)."""
-    w = np.asarray(weights, dtype=np.float64)
-    used = [i for i in range(3) if w[i] > 0]
+                    weights: tuple[float, float, float] = (1.0, 1.0, 1.0),
+                    ds: ArrayLike | None = None, distinct_weight: float = 0.0) -> NDArray[np.float64]:
+    """The weighted geometric mean (MS^a SS^b ES^c DS^d)^(1/(a+b+c+d)), element-wise; increasing
+    in each score, so bounds on MS give bounds on it (the staged selection relies on this)."""
+    w = np.asarray(tuple(weights) + (distinct_weight,), dtype=np.float64)
+    used = [i for i in range(4) if w[i] > 0]
     wu = w[used][:, None] / w[used].sum()
-    cols = np.stack([np.atleast_1d(np.asarray((ms, ss, es)[i], dtype=np.float64)) for i in used])
+    sources = (ms, ss, es, ds if ds is not None else np.nan)
+    cols = np.stack([np.atleast_1d(np.asarray(sources[i], dtype=np.float64)) for i in used])
     with np.errstate(divide="ignore", invalid="ignore"):
         logs = np.log(np.clip(cols, 0.0, None))
         return np.asarray(np.exp((wu * logs).sum(axis=0)), dtype=np.float64)
@@ -310,7 +325,7 @@ def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> S
     seg, info = segment_ids(table, cfg)
     code = first_failing(table, cfg.min_ms, cfg.min_ss, cfg.min_es)
     passing = code == 0
-    score = combined_score(table, cfg.weights, cfg.combine)
+    score = combined_score(table, cfg.weights, cfg.combine, cfg.distinct_weight)
     keep = np.zeros(n, dtype=bool)
     gaps: list[Gap] = []
     if n:
@@ -345,6 +360,8 @@ def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> S
         None if k else ("segment" if r is None else r) for k, r in zip(keep.tolist(), failed)
     ]
     info.update({"combine": cfg.combine, "weights": list(cfg.weights), "n_gaps": len(gaps)})
+    if cfg.distinct_weight > 0:
+        info["distinct_weight"] = cfg.distinct_weight
     return Selection(
         mode="segment",
         index=table.index,

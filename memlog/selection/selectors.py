@@ -29,6 +29,7 @@ SELECTORS: dict[str, dict[str, Any]] = {
         "min_es": 0.0,
         "weights": (1.0, 1.0, 1.0),
         "combine": "geometric",
+        "distinct_weight": 0.0,
     },
 }
 

@@ -20,14 +20,18 @@ from numpy.typing import ArrayLike, NDArray
 
 from memlog.errors import EvaluationError
 
-__all__ = ["ScoreTable", "Selection", "Gap", "CRITERIA", "REASONS"]
+__all__ = ["ScoreTable", "Selection", "Gap", "CRITERIA", "REASONS", "DISTINCT"]
 
 #: The three criteria in the scorer's staged (cheap-first) order; a dropped frame's reason
 #: is the first of these it fails.
 CRITERIA: tuple[str, str, str] = ("staticity", "entropy", "memorability")
 
+#: The criterion computed over the whole drive (:mod:`memlog.selection.distinctiveness`), used
+#: when the table has a ``ds`` column and the selection asks for it.
+DISTINCT = "distinctiveness"
+
 #: Every reason a selector may give for dropping a frame.
-REASONS: tuple[str, ...] = CRITERIA + ("segment", "duplicate", "not-sampled")
+REASONS: tuple[str, ...] = CRITERIA + (DISTINCT, "segment", "duplicate", "not-sampled")
 
 _UNIT_NORM_TOL = 1e-3
 
@@ -58,7 +62,9 @@ class ScoreTable:
     times), ``ms``/``ss``/``es`` (float64, NaN = not computed) all have length N.
     ``positions`` is [N, 2] or [N, 3] metres in a local frame (rows with any NaN are
     unknown); ``descriptors`` is [N, d] float32, each finite row L2-normalised (rows with
-    any NaN are unknown). Columns are copied and converted on construction.
+    any NaN are unknown). ``ds`` is the optional distinctiveness criterion (float64 in (0, 1),
+    NaN = unknown; :mod:`memlog.selection.distinctiveness`). Columns are copied and converted on
+    construction.
     """
 
     index: NDArray[np.int64]
@@ -69,9 +75,15 @@ class ScoreTable:
     positions: NDArray[np.float64] | None = None
     descriptors: NDArray[np.float32] | None = None
     topic: str = ""
+    ds: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         self.index = _int_column("index", self.index)
+        if self.ds is not None:
+            self.ds = _float_column("ds", self.ds)
+            if len(self.ds) != len(self.index):
+                raise EvaluationError(f"ScoreTable columns differ in length: index has {len(self.index)} rows, "
+                                      f"ds has {len(self.ds)}")
         self.t_ns = _int_column("t_ns", self.t_ns)
         self.ms = _float_column("ms", self.ms)
         self.ss = _float_column("ss", self.ss)
@@ -157,6 +169,7 @@ class ScoreTable:
             positions=None if self.positions is None else self.positions[r],
             descriptors=None if self.descriptors is None else self.descriptors[r],
             topic=self.topic,
+            ds=None if self.ds is None else self.ds[r],
         )
 
 

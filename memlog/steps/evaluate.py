@@ -11,6 +11,14 @@ threshold sweeps, the criterion contribution, map size and matching time, and wr
 
 Outputs already in OUT are reused only when they were made from the same input (path, size,
 modification time) with the same settings; the run says which it reused and which it refused.
+
+Quick trials: ``window`` (start/end/stride, resolved per log) and ``max_frames`` restrict both
+drives to part of them; ``descriptors`` evaluates several descriptors in one run (each drive is
+described once per descriptor and cached as ``OUT/{reference,query}.<kind>.parquet``; the map of
+each is ``OUT/map.<kind>.mcap`` when there are several). With ``whiten`` (the default) every map
+is whitened by the transform the map step fitted on the reference drive, and the same transform
+is applied to the query descriptors; the unwhitened full map is reported beside it
+(``full_unwhitened``).
 """
 
 from __future__ import annotations
@@ -24,13 +32,16 @@ from typing import Any, Literal
 import numpy as np
 
 from memlog._version import __version__
+from memlog.descriptors.auto import AUTO, resolve_descriptor
 from memlog.descriptors.base import Describer, check_compatible
 from memlog.descriptors.extract import describe_log
+from memlog.descriptors.whitening import Whitening
 from memlog.descriptors.registry import DESCRIBERS, make_describer
 from memlog.descriptors.search import match, time_per_query
 from memlog.descriptors.table import DescriptorTable
 from memlog.errors import ConfigError, DescriptorError, EvaluationError, MemlogError
 from memlog.evaluation.metrics import (
+    PAPER_READINGS,
     ProtocolResult,
     evaluate_map_only,
     evaluate_paper,
@@ -63,7 +74,11 @@ _CRITERIA = {1: "staticity", 2: "entropy", 3: "memorability"}
 class EvaluateConfig:
     """Settings of an evaluation (scoring and selection have their own typed configs).
 
-    ``descriptor``: the VPR descriptor; ``tol_m``: position truth tolerance (metres); ``k``:
+    ``descriptor``: the VPR descriptor (``auto``: by frame size; several comma-separated names
+    are evaluated one after the other, the first being the main result); ``whiten``: whiten
+    with the map's transform; ``window``/``max_frames``: evaluate on part of both drives (quick
+    trials; ``query_window``: the query's own time window when it differs, e.g. ``+S`` times
+    resolved against each log); ``tol_m``: position truth tolerance (metres); ``k``:
     candidates per query; ``seeds``: random baselines; ``paper_discarded``: how the paper
     protocol counts a query whose best match was discarded; ``reference_topic`` /
     ``query_topic``: camera topics (default: the first); ``report``: write report.html.
@@ -71,30 +86,51 @@ class EvaluateConfig:
 
     score: ScoreConfig = field(default_factory=ScoreConfig)
     select: SelectionConfig = field(default_factory=SelectionConfig)
-    descriptor: str = "thumbnail"
+    descriptor: str = AUTO
+    whiten: bool = True
+    window: FrameWindow = FrameWindow()
+    query_window: FrameWindow | None = None
+    max_frames: int | None = None
     tol_m: float = 25.0
     k: int = 10
     seeds: int = 20
-    paper_discarded: Literal["false_negative", "true_negative"] = "false_negative"
+    paper_discarded: Literal["false_negative", "true_negative", "uncovered_negative"] = "false_negative"
     reference_topic: str | None = None
     query_topic: str | None = None
     report: bool = True
 
     def __post_init__(self) -> None:
-        if self.descriptor not in DESCRIBERS:
-            raise ConfigError(f"descriptor must be one of {', '.join(sorted(DESCRIBERS))}, got {self.descriptor!r}")
+        names = self.descriptors
+        bad = [n for n in names if n != AUTO and n not in DESCRIBERS]
+        if bad or not names or len(set(names)) != len(names):
+            raise ConfigError(f"descriptor must be auto or one of {', '.join(sorted(DESCRIBERS))} (several: comma-"
+                              f"separated, each once), got {self.descriptor!r}")
+        mf = self.max_frames
+        if mf is not None and (isinstance(mf, bool) or not isinstance(mf, int) or mf < 1):
+            raise ConfigError(f"max_frames must be an integer >= 1, got {mf!r}")
+        if self.window.topics is not None or (self.query_window is not None and self.query_window.topics):
+            raise ConfigError("window: give topics with reference_topic / query_topic")
         if not (isinstance(self.tol_m, (int, float)) and np.isfinite(self.tol_m) and self.tol_m >= 0):
             raise ConfigError(f"tolerance must be a number >= 0 (metres), got {self.tol_m!r}")
         for name, low in (("k", 1), ("seeds", 1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
-        if self.paper_discarded not in ("false_negative", "true_negative"):
-            raise ConfigError(f"paper_discarded must be false_negative or true_negative, got {self.paper_discarded!r}")
+        if self.paper_discarded not in PAPER_READINGS:
+            raise ConfigError(f"paper_discarded must be one of {', '.join(PAPER_READINGS)}, got "
+                              f"{self.paper_discarded!r}")
+
+    @property
+    def descriptors(self) -> list[str]:
+        """The descriptor names of ``descriptor`` (comma-separated), in order."""
+        return [n.strip() for n in str(self.descriptor).split(",") if n.strip()]
 
     def options(self) -> dict[str, Any]:
         """The settings other than scoring and selection, JSON-ready."""
-        return {k: v for k, v in asdict(self).items() if k not in ("score", "select")}
+        out = {k: v for k, v in asdict(self).items() if k not in ("score", "select", "window", "query_window")}
+        out["window"] = self.window.to_dict()
+        out["query_window"] = self.query_window.to_dict() if self.query_window else None
+        return out
 
 
 @dataclass
@@ -115,16 +151,16 @@ def _proto(r: ProtocolResult) -> dict[str, Any]:
             "coverage": r.coverage}
 
 
-def _evaluate_mask(ref: DescriptorTable, q: DescriptorTable, truth: list[set[int]], mask: np.ndarray,
+def _evaluate_mask(ref: np.ndarray, q: np.ndarray, truth: list[set[int]], mask: np.ndarray,
                    full_idx: np.ndarray, full_sim: np.ndarray, cfg: EvaluateConfig
                    ) -> tuple[dict[str, Any], ProtocolResult, ProtocolResult]:
     k = min(cfg.k, max(1, int(mask.sum())))
     ns = tuple(n for n in (1, 5, 10) if n <= max(k, 1))
-    idx, sim = match(q.descriptors, ref.descriptors, k=max(ns), ref_mask=mask)
+    idx, sim = match(q, ref, k=max(ns), ref_mask=mask)
     mo = evaluate_map_only((idx, sim), truth, mask, ns=ns)
     po = evaluate_paper((full_idx[:, : max(ns)], full_sim[:, : max(ns)]), truth, mask, ns=ns,
                         discarded=cfg.paper_discarded)
-    timing = time_per_query(q.descriptors, ref.descriptors, repeats=3, ref_mask=mask, max_queries=50)
+    timing = time_per_query(q, ref, repeats=3, ref_mask=mask, max_queries=50)
     out = {"frames": int(mask.sum()), **_proto(mo), "match_seconds_per_query": timing.seconds_per_query,
            "paper_protocol": _proto(po)}
     return out, mo, po
@@ -147,8 +183,10 @@ def _truth_rows(truth_frames: list[set[int]], q: DescriptorTable, ref_rows: np.n
     return out
 
 
-def _reuse_scores(path: Path, reference: str, cfg: ScoreConfig, topic: str | None) -> bool:
-    """Whether OUT/reference.scored.mcap was made from this reference log with this config."""
+def _reuse_scores(path: Path, reference: str, cfg: ScoreConfig, topic: str | None,
+                  window: FrameWindow | None = None) -> bool:
+    """Whether OUT/reference.scored.mcap was made from this reference log with this config
+    (and, when ``window`` is given, holds a score for every frame of it)."""
     if not path.is_file():
         return False
     try:
@@ -166,27 +204,34 @@ def _reuse_scores(path: Path, reference: str, cfg: ScoreConfig, topic: str | Non
     if topic is not None and topic not in read_scores(path):
         info(f"memlog: not reusing {path}: it has no scores for {topic}")
         return False
+    if window is not None and topic is not None:
+        have = {r["frame_index"] for r in read_scores(path)[topic]}
+        with open_log(reference) as reader:
+            need = {f.index for f in reader.frames([topic], window.start_ns, window.end_ns, window.stride)}
+        if not need <= have:
+            info(f"memlog: not reusing {path}: it lacks scores of {len(need - have)} frame(s) of the window")
+            return False
     info(f"memlog: reusing {path} (same reference log and scoring settings)")
     return True
 
 
-def _described(log: str, path: Path, describer: Describer, topic: str | None, reports: list[ReadReport],
+def _described(log: str, path: Path, describer: Describer, window: FrameWindow, reports: list[ReadReport],
                scores: dict[str, dict[int, dict[str, Any]]] | None = None) -> DescriptorTable:
-    """Descriptors of ``log`` (cached at ``path`` when made from the same log and describer)."""
+    """Descriptors of ``log`` (cached at ``path`` when made from the same log, window and describer)."""
     if path.is_file():
         try:
             t = read_descriptors(path)
             check_compatible(t.meta, describer.meta())
             if not same_identity(t.extra.get("log_identity"), log):
                 info(f"memlog: not reusing {path}: made from another log (or {log} changed)")
-            elif topic is not None and (t.extra.get("window") or {}).get("topics") != [topic]:
-                info(f"memlog: not reusing {path}: made from another topic")
+            elif t.extra.get("window") != window.to_dict():
+                info(f"memlog: not reusing {path}: made from another topic or window")
             else:
                 info(f"memlog: reusing {path}")
                 return t
         except DescriptorError as exc:
             info(f"memlog: not reusing {path}: {exc}")
-    t, report = describe_log(log, describer, FrameWindow((topic,) if topic else None), scores=scores)
+    t, report = describe_log(log, describer, window, scores=scores)
     reports.append(report)
     write_descriptors(path, t)
     return t
@@ -200,6 +245,22 @@ def _frame_counts(log: str, topic: str | None) -> tuple[str, int | None]:
             raise EvaluationError(f"{log}: no camera topic")
         t = cams[0]
         return t, reader.count_frames(FrameWindow((t,)))
+
+
+def _trial_window(log: str, topic: str, window: FrameWindow, max_frames: int | None) -> FrameWindow:
+    """``window`` on ``topic``, ending after its first ``max_frames`` frames when given."""
+    w = FrameWindow((topic,), window.start_ns, window.end_ns, window.stride)
+    if max_frames is None:
+        return w
+    with open_log(log) as reader:
+        last = None
+        for n, frame in enumerate(reader.frames([topic], w.start_ns, w.end_ns, w.stride)):
+            last = frame.log_time_ns
+            if n + 1 >= max_frames:
+                break
+    if last is None:
+        raise EvaluationError(f"{log}: no frame of {topic} in the window --start/--end")
+    return FrameWindow((topic,), w.start_ns, last + 1, w.stride)
 
 
 def _check_truth_fits(truth: list[set[int]], source: str, n_query: int | None, n_ref: int | None) -> None:
@@ -240,7 +301,12 @@ def evaluate(
     if truth is not None:
         truth_frames = parse_truth(truth)
         _check_truth_fits(truth_frames, str(truth), n_q, n_ref)
-    describer = make_describer(cfg.descriptor)
+    ref_window = _trial_window(reference, ref_topic, cfg.window, cfg.max_frames)
+    q_window = _trial_window(query, q_topic, cfg.query_window or cfg.window, cfg.max_frames)
+    with open_log(reference) as reader:
+        choices = [resolve_descriptor(name, reader, ref_topic) for name in cfg.descriptors]
+    kinds = list(dict.fromkeys(c.chosen for c in choices))
+    describers = {kind: make_describer(kind) for kind in kinds}
     out.mkdir(exist_ok=True)
     if not cfg.report:
         (out / "report.html").unlink(missing_ok=True)  # never leave an older report beside new results
@@ -249,53 +315,95 @@ def evaluate(
     # 1. score the reference drive (every score: sweeps and calibration need them)
     reports: list[ReadReport] = []
     scored = out / "reference.scored.mcap"
-    if not _reuse_scores(scored, reference, score_cfg, ref_topic):
-        reports.append(score(reference, scored, score_cfg, FrameWindow((ref_topic,))).report)
+    if not _reuse_scores(scored, reference, score_cfg, ref_topic, ref_window):
+        reports.append(score(reference, scored, score_cfg, ref_window).report)
     recs = read_scores(scored)[ref_topic]
     score_by_frame = {ref_topic: {r["frame_index"]: r for r in recs}}
 
-    # 2. descriptors of every reference and query frame
-    ref_t = _described(reference, out / f"reference.{cfg.descriptor}.parquet", describer, ref_topic, reports,
-                       score_by_frame)
-    q_t = _described(query, out / f"query.{cfg.descriptor}.parquet", describer, q_topic, reports)
-    n_ref_rows = int(ref_t.frame_index.max()) + 1 if len(ref_t) else 0
-
-    # 3. ground truth, as descriptor rows
-    if truth_frames is not None:
-        truth_src = str(truth)
-    else:
-        truth_frames = _position_truth(ref_t, q_t, cfg.tol_m)
-        truth_src = f"positions within {cfg.tol_m} m"
-    ref_rows = _rows_for(ref_t, max(n_ref_rows, max((max(s) + 1 for s in truth_frames if s), default=0)))
-    truth_rows = _truth_rows(truth_frames, q_t, ref_rows)
-
-    # 4. the memorable map, selected once: the metrics describe exactly the map written
-    map_res = make_map(reference, out / "map.mcap",
-                       MapConfig(score=score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=cfg.descriptor),
-                       scores=scored)
-    sel = map_res.selections[ref_topic]
-    mask = np.isin(ref_t.frame_index, sel.kept_indices)
-    table = score_table([score_by_frame[ref_topic][int(i)] for i in ref_t.frame_index], ref_topic)
-
-    # 5. variants under both protocols
-    full_idx, full_sim = match(q_t.descriptors, ref_t.descriptors, k=cfg.k)
     results: dict[str, Any] = {"memlog_version": __version__}
-    per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
-    kk = int(mask.sum())
-    variants = {"full": np.ones(len(ref_t), bool), "memorable": mask, "uniform": uniform_mask(len(ref_t), kk)}
-    for name, m in variants.items():
-        res, mo, po = _evaluate_mask(ref_t, q_t, truth_rows, m, full_idx, full_sim, cfg)
-        results[name] = res
-        per_variant[name] = (mo, po)
-    results["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
+    by_kind: dict[str, dict[str, Any]] = {}
+    main: tuple[Any, ...] | None = None
+    for choice in choices:
+        kind = choice.chosen
+        if kind in by_kind:
+            by_kind[kind].setdefault("requested_as", []).append(choice.requested)
+            continue
+        describer = describers[kind]
+        # 2. descriptors of every reference and query frame (unwhitened; cached per kind)
+        ref_t = _described(reference, out / f"reference.{kind}.parquet", describer, ref_window, reports,
+                           score_by_frame)
+        q_t = _described(query, out / f"query.{kind}.parquet", describer, q_window, reports)
+        if not len(ref_t) or not len(q_t):
+            raise EvaluationError("no frame of the reference or the query was described (window too small?)")
+        n_ref_rows = int(ref_t.frame_index.max()) + 1
+
+        # 3. ground truth, as descriptor rows
+        if truth_frames is not None:
+            truth_src = str(truth)
+            tf = truth_frames
+        else:
+            tf = _position_truth(ref_t, q_t, cfg.tol_m)
+            truth_src = f"positions within {cfg.tol_m} m"
+        ref_rows = _rows_for(ref_t, max(n_ref_rows, max((max(x) + 1 for x in tf if x), default=0)))
+        truth_rows = _truth_rows(tf, q_t, ref_rows)
+        if not any(truth_rows):
+            raise EvaluationError("no query frame in the window has a true match among the reference frames in it")
+
+        # 4. the memorable map, selected once: the metrics describe exactly the map written
+        in_window = {ref_topic: [score_by_frame[ref_topic][int(i)] for i in ref_t.frame_index
+                                 if int(i) in score_by_frame[ref_topic]]}
+        map_path = out / ("map.mcap" if len(kinds) == 1 else f"map.{kind}.mcap")
+        map_res = make_map(reference, map_path,
+                           MapConfig(score=score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=kind,
+                                     whiten=cfg.whiten),
+                           scores=in_window,
+                           known_descriptors={(ref_topic, int(i)): ref_t.descriptors[r]
+                                              for r, i in enumerate(ref_t.frame_index)})
+        sel = map_res.selections[ref_topic]
+        mask = np.isin(ref_t.frame_index, sel.kept_indices)
+        table = score_table(in_window[ref_topic], ref_topic)
+        whitening = _map_whitening(map_res.descriptors) if cfg.whiten else None
+        ref_d = whitening.apply(ref_t.descriptors) if whitening is not None else ref_t.descriptors
+        q_d = whitening.apply(q_t.descriptors) if whitening is not None else q_t.descriptors
+
+        # 5. variants under both protocols
+        full_idx, full_sim = match(q_d, ref_d, k=cfg.k)
+        res: dict[str, Any] = {"descriptor": choice.to_dict(), "describer": describer.meta().to_dict(),
+                               "whitening": map_res.whitening}
+        per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
+        kk = int(mask.sum())
+        variants = {"full": np.ones(len(ref_t), bool), "memorable": mask, "uniform": uniform_mask(len(ref_t), kk)}
+        for name, m in variants.items():
+            r, mo, po = _evaluate_mask(ref_d, q_d, truth_rows, m, full_idx, full_sim, cfg)
+            res[name] = r
+            per_variant[name] = (mo, po)
+        if whitening is not None:
+            raw_idx, raw_sim = match(q_t.descriptors, ref_t.descriptors, k=cfg.k)
+            res["full_unwhitened"] = _evaluate_mask(ref_t.descriptors, q_t.descriptors, truth_rows,
+                                                    variants["full"], raw_idx, raw_sim, cfg)[0]
+        res["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
                                  "select": cfg.select.mode,
                                  "keep_fraction": cfg.select.keep_fraction, "gaps": len(sel.gaps)})
-    rand = [_evaluate_mask(ref_t, q_t, truth_rows, m, full_idx, full_sim, cfg)[0]
-            for m in random_masks(len(ref_t), kk, range(cfg.seeds))]
-    results["random"] = _mean_std(rand)
+        rand = [_evaluate_mask(ref_d, q_d, truth_rows, m, full_idx, full_sim, cfg)[0]
+                for m in random_masks(len(ref_t), kk, range(cfg.seeds))]
+        res["random"] = _mean_std(rand)
+        by_kind[kind] = res
+        if main is None:
+            main = (choice, describer, ref_t, q_d, ref_d, truth_rows, full_idx, full_sim, table, sel, per_variant,
+                    map_res, truth_src)
 
-    # 6. sweeps, contribution, size and time
-    results["sweeps"] = _sweeps(table, ref_t, q_t, truth_rows, full_idx, full_sim, cfg)
+    assert main is not None
+    (choice, describer, ref_t, q_d, ref_d, truth_rows, full_idx, full_sim, table, sel, per_variant, map_res,
+     truth_src) = main
+    first = by_kind[choice.chosen]
+    for name in ("full", "memorable", "uniform", "random"):
+        results[name] = first[name]
+    results["descriptor"] = choice.to_dict()
+    results["whitening"] = first["whitening"]
+    results["descriptors"] = by_kind
+
+    # 6. sweeps, contribution, size and time (main descriptor)
+    results["sweeps"] = _sweeps(table, ref_d, q_d, truth_rows, full_idx, full_sim, cfg)
     th = sel.thresholds if cfg.select.mode == "paper" and sel.thresholds else cfg.select.thresholds
     results["criterion_contribution"] = _contribution(table, per_variant["full"][0], th)
     results["map_size"] = map_res.to_dict()
@@ -305,6 +413,7 @@ def evaluate(
                            "descriptor": describer.meta().to_dict(), "options": cfg.options(),
                            "reference": reference, "query": query, "reference_topic": ref_topic,
                            "query_topic": q_topic,
+                           "windows": {"reference": ref_window.to_dict(), "query": q_window.to_dict()},
                            "inputs": {"reference": log_identity(reference), "query": log_identity(query)},
                            "protocols": {
                                "map-only": "only map frames are searched; a query is correct iff its best map frame "
@@ -323,6 +432,13 @@ def evaluate(
     if map_res.report is not None:
         reports.append(map_res.report)
     return EvaluateResult(results, reports)
+
+
+def _map_whitening(path: Path | None) -> Whitening | None:
+    """The whitening transform stored with the map's descriptors (None when it is not whitened)."""
+    if path is None:
+        return None
+    return read_descriptors(path).whitening
 
 
 def _position_truth(ref_t: DescriptorTable, q_t: DescriptorTable, tol_m: float) -> list[set[int]]:
@@ -375,7 +491,7 @@ def _mean_std(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def _sweeps(table: ScoreTable, ref_t: DescriptorTable, q_t: DescriptorTable, truth_rows: list[set[int]],
+def _sweeps(table: ScoreTable, ref_d: np.ndarray, q_d: np.ndarray, truth_rows: list[set[int]],
             full_idx: np.ndarray, full_sim: np.ndarray, cfg: EvaluateConfig) -> dict[str, list[dict[str, Any]]]:
     """The paper's sweeps: each threshold from 0 to 1 by 0.1 with the other two at 0."""
     out: dict[str, list[dict[str, Any]]] = {}
@@ -387,7 +503,7 @@ def _sweeps(table: ScoreTable, ref_t: DescriptorTable, q_t: DescriptorTable, tru
             row: dict[str, Any] = {"threshold": v, "frames": int(keep.sum())}
             if keep.any():
                 ns = (1,)
-                idx, sim = match(q_t.descriptors, ref_t.descriptors, k=1, ref_mask=keep)
+                idx, sim = match(q_d, ref_d, k=1, ref_mask=keep)
                 mo = evaluate_map_only((idx, sim), truth_rows, keep, ns=ns)
                 po = evaluate_paper((full_idx[:, :1], full_sim[:, :1]), truth_rows, keep, ns=ns,
                                     discarded=cfg.paper_discarded)

@@ -3,14 +3,16 @@
 :func:`localize` describes the query frames the way the map was described, finds the best map
 frames of every query frame, writes the match table (Parquet or CSV, with the map topic of each
 match and the map file, descriptor and settings as metadata) and optionally an annotated copy
-of the query log with a ``T/memlog/match`` channel. All query frames are matched together, in
-blocks (:func:`memlog.descriptors.search.match`), or through an approximate FAISS index for big
-maps (:mod:`memlog.descriptors.approx`; ``search`` picks, ``auto`` by map size and query count).
-The search is timed as it runs (``timing_map``: wall time per query); ``time_search`` adds a
-separate, repeated timing (batched and one query at a time) for benchmarks. Query descriptors
-can be cached (``query_descriptors``): the cache is reused only when it was made from the same
-query log (path, size, modification time), window and descriptor, and the run says whether it
-was reused or refused.
+of the query log with a ``T/memlog/match`` channel. The descriptor is the map's (``auto`` means:
+whatever the map was built with), and a whitened map's transform, stored in the map file, is
+applied to every query frame; cached query descriptors made without it (or with another) are
+refused and described again. All query frames are matched together, in blocks
+(:func:`memlog.descriptors.search.match`), or through an approximate FAISS index for big maps
+(:mod:`memlog.descriptors.approx`; ``search`` picks, ``auto`` by map size and query count). The
+search is timed as it runs (``timing_map``: wall time per query); ``time_search`` adds a separate,
+repeated timing (batched and one query at a time) for benchmarks. Query descriptors can be cached
+(``query_descriptors``): the cache is reused only when it was made from the same query log (path,
+size, modification time), window and descriptor, and the run says whether it was reused or refused.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from memlog.descriptors.registry import make_describer
 from memlog.descriptors.approx import IVFIndex, SearchConfig, choose
 from memlog.descriptors.search import Database, QueryTiming, confidence, match, time_per_query
 from memlog.descriptors.table import DescriptorTable
+from memlog.descriptors.whitening import WhitenedDescriber
 from memlog.errors import ConfigError, DescriptorError
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow
@@ -59,8 +62,14 @@ class LocalizeConfig:
 
 
 def describer_for(table: DescriptorTable) -> Describer:
-    """A describer that makes descriptors comparable with ``table`` (same kind and params)."""
-    d = make_describer(table.meta.kind, **table.meta.params)
+    """A describer that makes descriptors comparable with ``table`` (same kind and params, and
+    the map's own whitening transform when the map is whitened)."""
+    d: Describer = make_describer(table.meta.kind, **table.meta.params)
+    if table.meta.whitening:
+        if table.whitening is None:
+            raise DescriptorError(f"the map's descriptors are whitened (sha256 {table.meta.whitening[:12]}…) but the "
+                                  "file does not hold the transform; rebuild the map with `memlog map`")
+        d = WhitenedDescriber(d, table.whitening)
     check_compatible(table.meta, d.meta())
     return d
 

@@ -15,7 +15,6 @@ The :class:`MapResult` carries the selections, so ``evaluate`` measures exactly 
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import time
@@ -26,24 +25,23 @@ from typing import Any, Literal
 import numpy as np
 
 from memlog._version import __version__
-from memlog.descriptors.base import Describer
-from memlog.descriptors.extract import build_table
-from memlog.descriptors.registry import make_describer
+from memlog.descriptors.auto import AUTO, DescriptorChoice, resolve_descriptor
+from memlog.descriptors.extract import ReferenceDescribing, build_table, drive_distinctiveness
+from memlog.descriptors.registry import DESCRIBERS, make_describer
+from memlog.descriptors.whitening import MIN_SAMPLES
 from memlog.errors import ConfigError, ImageDecodeError, SelectionError
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow, LogReader
-from memlog.io.frame import Frame
 from memlog.io.identity import same_identity
 from memlog.io.open import open_log
 from memlog.io.positions import PositionTrack, read_track
 from memlog.io.records import ReadReport
-from memlog.io.types import ImagePayload
 from memlog.models.runtime import choose_providers
 from memlog.outputs.annotated import read_scores, run_config, run_input_identity, scores_message
 from memlog.outputs.channels import family_of
 from memlog.outputs.descriptor_table import write_descriptors
 from memlog.outputs.maplog import MapLogWriter
-from memlog.progress import progress
+from memlog.progress import info, progress
 from memlog.scoring.config import ScoreConfig
 from memlog.selection import ScoreTable, Selection
 from memlog.selection.config import SelectionConfig
@@ -69,13 +67,16 @@ class MapConfig:
     ``topics``: camera topics to map (default: every camera topic); ``keep_topics``: topics
     copied whole (GPS, odometry); ``position_topic``: NavSatFix/pose/odometry topic for
     positions (default: the first found); ``image_format``/``jpeg_quality``: how raw frames
-    are encoded; ``descriptor``: reference descriptor kind (None: no descriptors);
-    ``descriptors_path``: the Parquet file (default: the map path with ``.parquet``);
-    ``descriptor_dtype``: how it stores them, float32 or float16 (half the size; read back as float32);
-    ``workers``: processes scoring frames; ``candidates``: with segment selection, score at most
-    this many frames per segment with ResMem (the best by their cheap scores, spread over the
-    segment; approximate) instead of exactly the frames that can still win (default); ``stride``:
-    consider every n-th frame of each topic only (frame indices stay positions on the topic).
+    are encoded; ``descriptor``: reference descriptor kind (``"auto"``: chosen from the frame
+    size, :mod:`memlog.descriptors.auto`; None: no descriptors); ``descriptors_path``: the Parquet
+    file (default: the map path with ``.parquet``); ``descriptor_dtype``: how it stores them,
+    float32 or float16 (half the size; read back as float32); ``whiten``: fit a PCA-whitening on
+    every frame of the drive and store it with the map (:mod:`memlog.descriptors.whitening`);
+    ``whiten_dim``: its largest dimension (default: the documented rule); ``workers``: processes
+    scoring frames; ``candidates``: with segment selection, score at most this many frames per
+    segment with ResMem (the best by their cheap scores, spread over the segment; approximate)
+    instead of exactly the frames that can still win (default); ``stride``: consider every n-th
+    frame of each topic only (frame indices stay positions on the topic).
     """
 
     score: ScoreConfig = field(default_factory=ScoreConfig)
@@ -85,17 +86,22 @@ class MapConfig:
     position_topic: str | None = None
     image_format: Literal["jpeg", "png"] = "jpeg"
     jpeg_quality: int = 90
-    descriptor: str | None = "thumbnail"
+    descriptor: str | None = AUTO
     descriptors_path: str | None = None
     descriptor_dtype: Literal["float32", "float16"] = "float32"
+    whiten: bool = True
+    whiten_dim: int | None = None
     workers: int = 1
     candidates: int | None = None
     stride: int = 1
 
     def __post_init__(self) -> None:
+        if self.descriptor is not None and self.descriptor != AUTO and self.descriptor not in DESCRIBERS:
+            raise ConfigError(f"descriptor must be auto, one of {', '.join(sorted(DESCRIBERS))} or none, "
+                              f"got {self.descriptor!r}")
         if self.descriptor_dtype not in ("float32", "float16"):
             raise ConfigError(f"descriptor_dtype must be float32 or float16, got {self.descriptor_dtype!r}")
-        for name, low in (("workers", 1), ("candidates", 1), ("stride", 1)):
+        for name, low in (("workers", 1), ("candidates", 1), ("stride", 1), ("whiten_dim", 1)):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < low):
                 raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
@@ -131,6 +137,8 @@ class MapResult:
     report: ReadReport | None = None
     crops_run: int | None = None
     crops_full: int | None = None
+    descriptor: DescriptorChoice | None = None
+    whitening: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -141,6 +149,7 @@ class MapResult:
             "byte_fraction": self.bytes_out / max(self.bytes_in, 1), "thresholds": self.thresholds,
             "seconds": round(self.seconds, 3), "resmem_crops_run": self.crops_run,
             "resmem_crops_full_scoring": self.crops_full,
+            "descriptor": self.descriptor.to_dict() if self.descriptor else None, "whitening": self.whitening,
             "topics": {t: s.to_dict() for t, s in self.selections.items()},
         }
 
@@ -150,10 +159,11 @@ def _val(v: Any) -> float:
 
 
 def score_table(records: list[dict[str, Any]], topic: str, track: PositionTrack | None = None,
-                descriptors: np.ndarray | None = None) -> ScoreTable:
+                descriptors: np.ndarray | None = None, ds: dict[int, float] | None = None) -> ScoreTable:
     """A ScoreTable from score records (``T/memlog/scores`` messages) of one topic; records of
     frames that did not decode are left out. Where MS was only bounded (staged selection), its
-    lower bound stands in: such a frame provably did not win its segment."""
+    lower bound stands in: such a frame provably did not win its segment. ``ds``: distinctiveness by
+    frame index."""
     recs = [r for r in records if r.get("rejected_by") != "undecodable"]
     t = np.array([r["log_time"] for r in recs], dtype=np.int64)
     pos = track.at(t.tolist()) if track is not None and len(recs) else None
@@ -164,6 +174,7 @@ def score_table(records: list[dict[str, Any]], topic: str, track: PositionTrack 
         ms=np.array([_val(r["ms"] if r["ms"] is not None else r.get("ms_low")) for r in recs]),
         ss=np.array([_val(r["ss"]) for r in recs]),
         es=np.array([_val(r["es"]) for r in recs]), positions=pos, descriptors=descriptors, topic=topic,
+        ds=None if ds is None else np.array([ds.get(r["frame_index"], np.nan) for r in recs]),
     )
 
 
@@ -224,52 +235,18 @@ def _scores_from(scores: str | os.PathLike[str] | Records, cfg: MapConfig, log: 
     return recs
 
 
-def _stripped(frame: Frame) -> Frame:
-    """``frame`` without its pixels (kept for the descriptor table's rows)."""
-    return dataclasses.replace(frame, payload=ImagePayload(frame.payload.kind, frame.payload.encoding, b""))
-
-
-class _Describing:
-    """Describes kept frames in batches while the map is written (bounded memory)."""
-
-    def __init__(self, describer: Describer, reader: LogReader, batch: int = 16) -> None:
-        self.describer, self.reader, self.batch = describer, reader, batch
-        self.frames: list[Frame] = []
-        self.rows: list[np.ndarray] = []
-        self._pending: list[tuple[Frame, np.ndarray]] = []
-
-    def add(self, frame: Frame) -> None:
-        try:
-            img = frame.decode_bgr()
-        except ImageDecodeError as exc:
-            self.reader.decode_error(frame, exc)
-            return
-        self._pending.append((_stripped(frame), img))
-        if len(self._pending) >= self.batch:
-            self.flush()
-
-    def flush(self) -> None:
-        if self._pending:
-            self.rows.append(self.describer.describe([img for _, img in self._pending]))
-            self.frames.extend(f for f, _ in self._pending)
-            self._pending.clear()
-
-    def result(self) -> tuple[list[Frame], np.ndarray]:
-        self.flush()
-        desc = np.concatenate(self.rows) if self.rows else np.zeros((0, self.describer.dim), np.float32)
-        return self.frames, desc
-
-
 def _stageable(cfg: MapConfig) -> bool:
     """Whether the staged selection applies: segments chosen by the geometric score, and the
-    user did not ask for every score (``--all-scores``) or the literal pipeline."""
+    user did not ask for every score (``--all-scores``) or the literal pipeline, and distinctiveness
+    (a score over the whole drive) is not part of the choice."""
     sel = cfg.select
     return sel.mode == "segment" and sel.combine == "geometric" and not cfg.score.all_scores \
-        and cfg.score.mode != "paper"
+        and cfg.score.mode != "paper" and not sel.needs_distinctiveness
 
 
 def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topic: Records,
-                track: PositionTrack | None, thumbs: dict[str, dict[int, np.ndarray]] | None) -> dict[str, Selection]:
+                track: PositionTrack | None, thumbs: dict[str, dict[int, np.ndarray]] | None,
+                ds_by_topic: dict[str, dict[int, float]] | None = None) -> dict[str, Selection]:
     """Select once per topic from the score records (and thumbnails when selection needs them)."""
     selections: dict[str, Selection] = {}
     for t in cams:
@@ -279,7 +256,7 @@ def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topi
             have = thumbs.get(t, {})
             recs = [r for r in recs if r["frame_index"] in have]
             descs = np.stack([have[r["frame_index"]] for r in recs]).astype(np.float32) if recs else None
-        table = score_table(recs, t, track, descs)
+        table = score_table(recs, t, track, descs, None if ds_by_topic is None else ds_by_topic.get(t, {}))
         left_out = len(recs_by_topic.get(t, [])) - table.n
         if left_out:
             reader.warn(f"{reader.path}: topic {t}: {left_out} frame(s) left out of the selection "
@@ -289,11 +266,12 @@ def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topi
 
 
 Crops = tuple[int | None, int | None]
+Thumbs = dict[str, dict[int, np.ndarray]] | None
 
 
 def _full(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: PositionTrack | None,
-          ex: Executor, scores: str | os.PathLike[str] | Records | None) -> tuple[Records, dict[str, Selection], Crops]:
-    """Every score of every frame (or a reused scoring run), then selection."""
+          ex: Executor, scores: str | os.PathLike[str] | Records | None) -> tuple[Records, Thumbs, Crops]:
+    """Every score of every frame (or a reused scoring run), and thumbnails when selection needs them."""
     sel_cfg = cfg.select
     thumbs: dict[str, dict[int, np.ndarray]] | None = {} if sel_cfg.needs_descriptors else None
     crops: Crops = (None, None)
@@ -307,11 +285,11 @@ def _full(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: P
         if thumbs is not None:
             for t in cams:
                 thumbs[t] = _thumbnails(reader, t, {r["frame_index"] for r in recs_by_topic.get(t, [])})
-    return recs_by_topic, _selections(reader, cfg, cams, recs_by_topic, track, thumbs), crops
+    return recs_by_topic, thumbs, crops
 
 
 def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: PositionTrack | None,
-            ex: Executor) -> tuple[Records, dict[str, Selection], Crops]:
+            ex: Executor) -> tuple[Records, Thumbs, Crops]:
     """Staged segment selection (:mod:`memlog.steps.map_scoring`): the cheap criteria of every
     frame, segments, then ResMem only where it can change which frame a segment keeps."""
     sel_cfg = cfg.select
@@ -369,8 +347,7 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
         recs_by_topic[t] = recs
     thumbs = {t: {cf.frame.index: cf.thumb for cf in cheap[t] if cf.thumb is not None} for t in cams} \
         if sel_cfg.needs_descriptors else None
-    selections = _selections(reader, cfg, cams, recs_by_topic, track, thumbs)
-    return recs_by_topic, selections, (run, full)
+    return recs_by_topic, thumbs, (run, full)
 
 
 def _positions(track: PositionTrack | None, frames: list[CheapFrame]) -> np.ndarray | None:
@@ -387,11 +364,13 @@ def make_map(
     *,
     scores: str | os.PathLike[str] | Records | None = None,
     executor: Executor | None = None,
+    known_descriptors: dict[tuple[str, int], np.ndarray] | None = None,
 ) -> MapResult:
     """Build the memorable-map log of ``log`` (see module doc). ``scores``: an annotated MCAP of
     ``memlog score`` (or its records) to reuse instead of scoring; ``executor``: where scoring jobs
-    run (default: ``config.workers`` local processes). Raises :class:`EmptyMapError` when nothing
-    would be kept."""
+    run (default: ``config.workers`` local processes); ``known_descriptors``: raw descriptors of
+    the configured kind by ``(topic, frame index)``, used instead of describing those frames again
+    (``evaluate`` has them). Raises :class:`EmptyMapError` when nothing would be kept."""
     t0 = time.perf_counter()
     cfg = config or MapConfig()
     sel_cfg = cfg.select
@@ -401,7 +380,8 @@ def make_map(
     choose_providers(cfg.score.device)  # --device cuda without CUDA: said before any work
     if dpath is not None:
         check_output(dpath, inputs + [output], flag="--descriptors")
-    describer = make_describer(cfg.descriptor) if cfg.descriptor is not None else None
+    if sel_cfg.needs_distinctiveness and cfg.descriptor is None:
+        raise ConfigError("distinctiveness (--dt / --distinct-weight) is computed from descriptors: give a descriptor")
     with open_log(log) as reader:
         cams = reader.check_camera_topics(cfg.topics)
         missing_keep = set(cfg.keep_topics) - set(reader.topics())
@@ -409,16 +389,28 @@ def make_map(
             raise ConfigError(f"--keep-topic: {reader.path} has no topic {', '.join(sorted(missing_keep))} "
                               f"(topics: {', '.join(reader.topics())})")
         track = read_track(reader, cfg.position_topic)  # None when the log has no position topic
+        # no camera topic: nothing to describe (the selection below reports the empty map)
+        choice = resolve_descriptor(cfg.descriptor, reader, cams[0]) if cfg.descriptor is not None and cams else None
+        describer = make_describer(choice.chosen) if choice is not None else None
         ex = executor or make_executor(cfg.workers)
         try:
             if scores is None and _stageable(cfg):
-                recs_by_topic, selections, crops = _staged(str(log), reader, cfg, cams, track, ex)
+                recs_by_topic, thumbs, crops = _staged(str(log), reader, cfg, cams, track, ex)
             else:
-                recs_by_topic, selections, crops = _full(str(log), reader, cfg, cams, track, ex, scores)
+                recs_by_topic, thumbs, crops = _full(str(log), reader, cfg, cams, track, ex, scores)
         finally:
             if executor is None:
                 ex.close()
         cams = [t for t in cams if t in recs_by_topic] if cfg.topics is None else cams
+        ds_by_topic: dict[str, dict[int, float]] = {}
+        known: dict[tuple[str, int], np.ndarray] = dict(known_descriptors or {})
+        whitening = None
+        if sel_cfg.needs_distinctiveness and describer is not None:
+            ds_by_topic, known, whitening = drive_distinctiveness(
+                reader, cams, describer, whiten=cfg.whiten, whiten_dim=cfg.whiten_dim, config=sel_cfg.distinct_config(),
+                indices={t: {r["frame_index"] for r in recs_by_topic.get(t, [])} for t in cams}, known=known)
+        selections = _selections(reader, cfg, cams, recs_by_topic, track, thumbs,
+                                 ds_by_topic if sel_cfg.needs_distinctiveness else None)
         kept = {t: {int(i) for i in s.index[s.keep]} for t, s in selections.items()}
         n_in = sum(len(s.index) for s in selections.values())
         n_kept = sum(len(k) for k in kept.values())
@@ -430,7 +422,10 @@ def make_map(
                 "entropy; lower --mt/--st/--et or let memlog pick thresholds with --keep-fraction 0.25"
             )
         score_recs = {t: {r["frame_index"]: r for r in recs_by_topic.get(t, [])} for t in cams}
-        describing = _Describing(describer, reader) if describer is not None else None
+        describing = None
+        if describer is not None:
+            describing = ReferenceDescribing(describer, reader, fit_whitening=cfg.whiten and whitening is None,
+                                             whiten_dim=cfg.whiten_dim, whitening=whitening, known=known)
         bytes_in = bytes_kept = 0
         counts = reader.message_counts()
         total = None
@@ -446,15 +441,32 @@ def make_map(
                     continue
                 bytes_in += len(item.raw.data)
                 frame = item.frame
-                if frame is None or item.index not in kept[item.raw.channel.topic]:
+                if frame is None:
+                    continue
+                keep = item.index in kept[item.raw.channel.topic]
+                if describing is not None and (keep or (describing.wants_all_frames
+                                                        and frame.index in score_recs[frame.topic])):
+                    describing.add(frame, keep)  # the whitening is fitted on every frame selection saw
+                if not keep:
                     continue
                 bytes_kept += len(item.raw.data)
                 w.write_frame(frame, item.raw, score_recs[frame.topic].get(frame.index))
-                if describing is not None:
-                    describing.add(frame)
             result = MapResult(Path(output), None, selections, n_in, n_kept, bytes_in, 0, dict(thresholds),
-                               report=reader.report, crops_run=crops[0], crops_full=crops[1])
+                               report=reader.report, crops_run=crops[0], crops_full=crops[1], descriptor=choice)
+            described = None
+            if describing is not None:
+                described = describing.result(source=f"{reader.path} ({', '.join(cams)})")
+                white = described[2]
+                if white is not None:
+                    result.whitening = {"sha256": white.sha256, "dim_in": white.dim_in, "dim_out": white.dim_out,
+                                        "n_fit": white.n_fit, "eps": white.eps}
+                elif cfg.whiten:
+                    result.whitening = {"skipped": f"fewer than {MIN_SAMPLES} frames described; not whitened"}
+                    info(f"memlog: {reader.path}: the map is not whitened: whitening is fitted on at least "
+                         f"{MIN_SAMPLES} frames of the drive")
             w.close({
+                "descriptor": json.dumps(choice.to_dict() if choice else None, sort_keys=True),
+                "whitening": json.dumps(result.whitening, sort_keys=True),
                 "memlog_version": __version__, "input": str(reader.path), "config": cfg.score.to_json(),
                 "selection_config": json.dumps(sel_cfg.to_dict(), sort_keys=True),
                 "mode": sel_cfg.mode, "keep_fraction": json.dumps(sel_cfg.keep_fraction),
@@ -465,12 +477,12 @@ def make_map(
                 "resmem_crops_run": json.dumps(crops[0]), "resmem_crops_full_scoring": json.dumps(crops[1]),
             })
         result.bytes_out = os.path.getsize(output)
-        if describing is not None and describer is not None and dpath is not None:
-            frames, desc = describing.result()
+        if described is not None and describer is not None and dpath is not None and choice is not None:
+            frames, desc, white = described
             extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
-                     "keep_fraction": sel_cfg.keep_fraction}
-            write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra),
-                              dtype=cfg.descriptor_dtype)
+                     "keep_fraction": sel_cfg.keep_fraction, "descriptor_choice": choice.to_dict()}
+            write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra,
+                                                 whitening=white), dtype=cfg.descriptor_dtype)
             result.descriptors = dpath
     result.seconds = time.perf_counter() - t0
     return result
