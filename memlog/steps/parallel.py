@@ -19,7 +19,8 @@ from typing import Any, Protocol, TypeVar
 
 from memlog.errors import ConfigError
 
-__all__ = ["Executor", "InProcess", "Processes", "make_executor", "cached", "cpu_count", "threads_per_worker"]
+__all__ = ["Executor", "InProcess", "Processes", "make_executor", "cached", "cpu_count", "threads_per_worker",
+           "job_threads"]
 
 R = TypeVar("R")
 Job = tuple[Any, ...]
@@ -48,6 +49,16 @@ def threads_per_worker(workers: int, threads: int = 0) -> int:
     if threads:
         return threads
     return max(1, cpu_count() // max(1, workers))
+
+
+def job_threads(executor: Executor, threads: int = 0) -> int:
+    """ONNX Runtime threads for the jobs of ``executor``: ``threads`` when given, else the
+    executor's own count when it declares one (a Ray actor's CPUs, on whatever node it runs),
+    else this machine's cores split between its workers."""
+    if threads:
+        return threads
+    own = getattr(executor, "threads", 0)
+    return int(own) if own else threads_per_worker(executor.workers)
 
 
 class InProcess:
