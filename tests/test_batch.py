@@ -18,7 +18,7 @@ from memlog.errors import ConfigError, OutputPathError
 from memlog.steps.batch import BatchConfig, batch, read_manifest
 from memlog.steps.map import MapConfig
 from memlog.steps.ray_pool import Placement, plan_placement
-from tests.batch_support import assert_same_outputs, reference
+from tests.same_outputs import assert_same_outputs, reference
 from tests.conftest import FIXTURES
 from tests.stand_in import use_stand_in
 

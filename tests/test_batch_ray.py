@@ -25,7 +25,7 @@ from memlog.cli.app import main
 from memlog.steps.batch import BatchConfig, batch
 from memlog.steps.map import MapConfig
 from memlog.steps.ray_pool import KILL_HOOK
-from tests.batch_support import assert_same_outputs, reference
+from tests.same_outputs import assert_same_outputs, reference
 from tests.conftest import FIXTURES, ROOT
 from tests.stand_in import SWITCH_ENV
 

@@ -371,10 +371,7 @@ def batch_config(args: argparse.Namespace) -> Any:
             flags[key] = getattr(args, key)
     if args.no_resume:
         flags["resume"] = False
-    try:
-        return build(BatchConfig, flags, "flags", cfg) if flags else cfg
-    except ConfigError as exc:
-        raise ConfigError("--" + str(exc).removeprefix("flags: ")) from None
+    return _with_flags(BatchConfig, flags, cfg)
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
@@ -495,8 +492,13 @@ def evaluate_config(args: argparse.Namespace) -> Any:
             flags[key] = v
     if args.no_report:
         flags["report"] = False
+    return _with_flags(EvaluateConfig, flags, cfg)
+
+
+def _with_flags(cls: Any, flags: dict[str, Any], cfg: Any) -> Any:
+    """``cfg`` with the settings given by flags (a bad value is a usage error naming its flag)."""
     try:
-        return build(EvaluateConfig, flags, "flags", cfg) if flags else cfg
+        return build(cls, flags, "flags", cfg) if flags else cfg
     except ConfigError as exc:
         raise ConfigError("--" + str(exc).removeprefix("flags: ")) from None
 

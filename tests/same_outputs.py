@@ -1,5 +1,6 @@
-"""What ``memlog batch`` must reproduce: the local one-process ``score`` and ``make_map`` of a log,
-and its outputs read back without their timing fields (the only fields allowed to differ)."""
+"""memlog's outputs read back without their timing fields (the only fields allowed to differ
+between a one-process run and a run on workers), and what ``memlog batch`` must reproduce: the
+local one-process ``score`` and ``make_map`` of a log."""
 
 from __future__ import annotations
 
@@ -14,7 +15,6 @@ from memlog.steps.batch import BatchConfig
 from memlog.steps.map import make_map
 from memlog.steps.score import score
 from tests.stand_in import stand_in_scorer
-from tests.test_workers import _normalised as normalised_scored
 
 
 def reference(log: Path | str, outdir: Path, cfg: BatchConfig, *, stand_in: bool) -> dict[str, Path]:
@@ -29,8 +29,8 @@ def reference(log: Path | str, outdir: Path, cfg: BatchConfig, *, stand_in: bool
 
 
 def normalised_map(path: Path) -> tuple[list[tuple[Any, ...]], dict[str, list[dict[str, Any]]], dict[str, Any]]:
-    """A map log: every message but the score records as bytes, the score records decoded without
-    ``timing_ms``, the metadata."""
+    """An MCAP memlog wrote: every message but the score records (topic, times, sequence, bytes);
+    the score records (decoded, whatever their encoding) without ``timing_ms``; the metadata."""
     from memlog.outputs.annotated import read_scores
 
     msgs = []
@@ -39,11 +39,24 @@ def normalised_map(path: Path) -> tuple[list[tuple[Any, ...]], dict[str, list[di
         for _, ch, m in r.iter_messages(log_time_order=False):
             if not ch.topic.endswith("/memlog/scores"):
                 msgs.append((ch.topic, m.log_time, m.publish_time, m.sequence, bytes(m.data)))
-        meta = {md.name: dict(md.metadata) for md in r.iter_metadata()}
+        meta: dict[str, Any] = {md.name: dict(md.metadata) for md in r.iter_metadata()}
     scores = read_scores(path)
     for recs in scores.values():
         for rec in recs:
             rec.pop("timing_ms")
+    return msgs, scores, meta
+
+
+def normalised_scored(path: Path) -> tuple[list[tuple[Any, ...]], dict[str, list[dict[str, Any]]], dict[str, Any]]:
+    """An annotated log of ``memlog score`` as :func:`normalised_map` reads it, ``memlog_summary``
+    without the run's timing (``seconds``, ``mean_ms_per_frame``) and output path."""
+    msgs, scores, meta = normalised_map(path)
+    summary = {k: json.loads(v) for k, v in meta["memlog_summary"].items()}
+    summary.pop("seconds")
+    summary.pop("output")
+    for t in summary["topics"].values():
+        t.pop("mean_ms_per_frame")
+    meta["memlog_summary"] = summary
     return msgs, scores, meta
 
 
