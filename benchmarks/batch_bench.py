@@ -85,7 +85,8 @@ def main() -> None:
     ap.add_argument("--stride", type=int, default=24)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--model", choices=["real", "stand-in"], default="real")
-    ap.add_argument("--modes", nargs="+", default=["one process", "--workers 2", "Ray local"])
+    ap.add_argument("--modes", nargs="+", default=["one process", "--workers 2", "Ray local", "Ray, 2 at once"],
+                    help="one process, --workers 2, Ray local, 'Ray, 2 at once' (--logs-at-once 2)")
     ap.add_argument("--tasks", type=int, default=500, help="no-op jobs for the per-task overhead")
     args = ap.parse_args()
     set_quiet(True)
@@ -113,7 +114,8 @@ def main() -> None:
     mcfg = MapConfig(stride=args.stride)
     modes = {"one process": BatchConfig(map=mcfg, workers=1, resume=False),
              "--workers 2": BatchConfig(map=mcfg, workers=2, resume=False),
-             "Ray local": BatchConfig(map=mcfg, ray=True, workers=2, resume=False)}
+             "Ray local": BatchConfig(map=mcfg, ray=True, workers=2, resume=False),
+             "Ray, 2 at once": BatchConfig(map=mcfg, ray=True, workers=2, resume=False, logs_at_once=2)}
     work = Path(tempfile.mkdtemp(prefix="memlog-batch-bench-"))
     runs: dict[str, list[dict[str, float]]] = {m: [] for m in args.modes}
     try:
@@ -136,10 +138,10 @@ def main() -> None:
     print(f"memlog batch, {len(logs)} logs ({', '.join(args.logs)}), every {args.stride}th frame: {frames:.0f} "
           f"frames, each scored by score and by map; ResMem {args.model}; {cpu_count()} cores; {args.repeats} "
           "repeat(s), min-max")
-    print(f"{'mode':<14}{'seconds':>14}{'logs/hour':>14}{'frames/s':>14}{'load avg':>12}")
+    print(f"{'mode':<16}{'seconds':>14}{'logs/hour':>14}{'frames/s':>14}{'load avg':>12}")
     for m in args.modes:
         rs = runs[m]
-        print(f"{m:<14}{rng([r['seconds'] for r in rs], '.1f'):>14}"
+        print(f"{m:<16}{rng([r['seconds'] for r in rs], '.1f'):>14}"
               f"{rng([3600 * r['logs'] / r['seconds'] for r in rs], '.0f'):>14}"
               f"{rng([r['frames'] / r['seconds'] for r in rs], '.3f'):>14}{rng([r['load'] for r in rs], '.1f'):>12}")
     print(f"Ray start-up (ray.init, local instance): {ray_start:.1f} s; per no-op task in job order: Ray actors "

@@ -28,11 +28,13 @@ from tests.stand_in import use_stand_in
     (2, 0, {}, Placement(2, 1, 0.0)),  # this machine: two single-threaded actors
     (2, 0, {"threads": 2}, Placement(1, 2, 0.0)),
     (16, 0, {"workers": 3, "threads": 4}, Placement(3, 4, 0.0)),
-    (64, 8, {}, Placement(32, 1, 0.25)),  # 4 actors per GPU, each with a core
+    (64, 8, {}, Placement(64, 1, 0.125)),  # every core feeds a GPU: 8 actors per GPU
+    (256, 2, {}, Placement(32, 1, 1 / 16)),  # at most 16 per GPU
     (64, 8, {"threads": 4}, Placement(16, 4, 0.5)),  # 8 CPUs per GPU / 4 threads: 2 per GPU
     (64, 8, {"device": "cpu"}, Placement(64, 1, 0.0)),  # GPUs left alone
     (8, 1, {"actors_per_gpu": 2, "threads": 2}, Placement(2, 2, 0.5)),
     (4, 2, {"device": "cuda"}, Placement(4, 1, 0.5)),
+    (64, 8, {"workers": 10}, Placement(10, 1, 0.125)),
 ])
 def test_placement_fits_the_cluster(cpus: int, gpus: int, kw: dict, want: Placement) -> None:
     got = plan_placement(cpus, gpus, **kw)
@@ -109,12 +111,15 @@ def test_local_workers_write_what_one_process_writes_and_resume(tmp_path: Path,
     assert again.executor.get("started") is False and again.exit_code == 0
     assert [(r.frames, r.kept) for r in again.logs] == [(r.frames, r.kept) for r in res.logs]
 
+    leftover = out / ".ros2_mcap.map.mcap.x1y2z3.tmp"  # as a killed run leaves it
+    leftover.write_bytes(b"half a map")
     parquet = Path(res.logs[1].outputs["descriptors"])
     st = parquet.stat()
     os.utime(parquet, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # an output changed since
     third = batch(logs, out, cfg)
     assert [r.status for r in third.logs] == ["skipped", "ok"]
     assert_same_outputs(third.logs[1].outputs, want["ros2_mcap"])
+    assert not leftover.exists()
 
     other = BatchConfig(map=MapConfig(jpeg_quality=80), workers=1)  # other settings: not up to date
     assert [r.status for r in batch(logs[:1], out, other).logs] == ["ok"]

@@ -6,6 +6,7 @@
   the run, and changes no output;
 * a manifest with a truncated log, a file that is no log and a missing path: the good log's
   outputs as before, the damaged one finished and reported, exit 1 at the end;
+* the shared EuRoC logs (four formats) and a Nordland drive: the local outputs;
 * the real ResMem through Ray (one log, every 2nd frame): the same outputs as on one process.
 
 Every test but the last scores with the stand-in ResMem (``tests/stand_in.py``), switched on in
@@ -26,7 +27,7 @@ from memlog.steps.batch import BatchConfig, batch
 from memlog.steps.map import MapConfig
 from memlog.steps.ray_pool import KILL_HOOK
 from tests.same_outputs import assert_same_outputs, reference
-from tests.conftest import FIXTURES, ROOT
+from tests.conftest import FIXTURES, ROOT, shared
 from tests.stand_in import SWITCH_ENV
 
 ray = pytest.importorskip("ray")
@@ -82,6 +83,36 @@ def test_three_formats_on_ray_give_the_local_outputs_and_resume(
     assert [r.frames for r in res.logs] == [4, 8, 4]
     again = batch(LOGS, tmp_path, CFG)
     assert [r.status for r in again.logs] == ["skipped"] * 3 and again.executor.get("started") is False
+
+
+def test_logs_at_once_share_the_actors(tmp_path: Path, stand_in: None, want: dict[str, dict[str, Path]]) -> None:
+    res = batch(LOGS, tmp_path, BatchConfig(ray=True, workers=2, chunk_frames=1, logs_at_once=2))
+    assert [r.status for r in res.logs] == ["ok", "ok", "ok"]  # in the order given, whatever order they ended
+    for r in res.logs:
+        assert_same_outputs(r.outputs, want[Path(r.log).name])
+
+
+@pytest.mark.shared
+def test_shared_logs_on_ray_give_the_local_outputs(tmp_path: Path, stand_in: None,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """The shared EuRoC logs (four formats, every 16th frame) and a Nordland drive (every 100th)."""
+    from tests.stand_in import use_stand_in
+
+    logs = [shared(n) for n in ("euroc_micro_ros2.mcap", "euroc_micro_ros1.bag", "euroc_micro_ros2_db3",
+                                "euroc_micro_foxglove.mcap")]
+    cfg = BatchConfig(map=MapConfig(stride=16), ray=True, workers=2)
+    res = batch(logs, tmp_path / "out", cfg)
+    assert [r.status for r in res.logs] == ["ok"] * 4
+    assert [r.frames for r in res.logs] == [12, 6, 6, 6]  # 95 frames per topic; the ROS 2 MCAP has two
+    use_stand_in(monkeypatch)
+    (tmp_path / "ref").mkdir()
+    for log, r in zip(logs, res.logs):
+        assert_same_outputs(r.outputs, reference(log, tmp_path / "ref", cfg, stand_in=True))
+    nordland = shared("nordland_dev_summer.mcap")
+    cfg = BatchConfig(map=MapConfig(stride=100), ray=True, workers=2, chunk_frames=2)
+    r = batch([nordland], tmp_path / "out", cfg).logs[0]
+    assert r.status == "ok" and r.frames == 8
+    assert_same_outputs(r.outputs, reference(nordland, tmp_path / "ref", cfg, stand_in=True))
 
 
 def test_a_worker_killed_mid_task_is_retried(tmp_path: Path, stand_in: None, ray_dir: Path,

@@ -345,8 +345,10 @@ def add_batch(sub: Any) -> None:
                    help="local worker processes (default: the cores); with --ray, Ray actors (default: as many as "
                         "the cluster's CPUs, or GPUs, hold)")
     p.add_argument("--actors-per-gpu", type=positive_int, metavar="N",
-                   help="with --ray on GPUs: actors sharing one GPU (default: CPUs per GPU / --threads, at most 4)")
+                   help="with --ray on GPUs: actors sharing one GPU (default: CPUs per GPU / --threads, at most 16)")
     p.add_argument("--max-retries", type=nonneg_int, help="attempts at a job after its worker died (default 3)")
+    p.add_argument("--logs-at-once", type=positive_int, metavar="N",
+                   help="logs worked on at the same time, sharing the workers (default 1)")
     p.add_argument("--no-resume", action="store_true", help="score and map every log, even those up to date")
     p.add_argument("--summary", metavar="FILE", help="JSON summary (default OUTDIR/batch.json; resume reads it)")
     _add_map_settings(p)
@@ -366,7 +368,7 @@ def batch_config(args: argparse.Namespace) -> Any:
     if args.ray is not None:
         flags["ray"] = True
         flags["ray_address"] = None if args.ray == "local" else args.ray
-    for key in ("workers", "actors_per_gpu", "max_retries"):
+    for key in ("workers", "actors_per_gpu", "max_retries", "logs_at_once"):
         if getattr(args, key) is not None:
             flags[key] = getattr(args, key)
     if args.no_resume:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import glob
 import hashlib
 import json
 import os
@@ -43,7 +44,7 @@ from memlog.models.runtime import choose_providers
 from memlog.outputs.results import write_results
 from memlog.progress import Bar, info, redirect
 from memlog.steps.map import MapConfig, make_map
-from memlog.steps.parallel import Executor, cpu_count, make_executor
+from memlog.steps.parallel import Executor, InProcess, cpu_count, make_executor
 from memlog.steps.score import score
 
 __all__ = ["batch", "BatchConfig", "BatchResult", "LogResult", "read_manifest", "SUMMARY_NAME", "OUTPUT_SUFFIXES"]
@@ -65,9 +66,11 @@ class BatchConfig:
     worker processes (default: the cores), or with ``ray`` the number of Ray actors (default: as
     many as the cluster's CPUs, or GPUs, hold); ``ray``: run the jobs on Ray, at ``ray_address``
     (``auto``, ``ray://HOST:10001``; None: ``$RAY_ADDRESS`` or a new local instance);
-    ``actors_per_gpu``: actors sharing one GPU (default: CPUs per GPU over threads, at most 4);
+    ``actors_per_gpu``: actors sharing one GPU (default: CPUs per GPU over threads, at most 16);
     ``max_retries``: attempts at a job after its worker died; ``resume``: skip logs whose
-    outputs are up to date; ``chunk_frames``: frames per scoring job.
+    outputs are up to date; ``chunk_frames``: frames per scoring job; ``logs_at_once``: logs
+    the driver works on at the same time (their jobs share the workers, so one log's serial
+    parts, such as copying records and writing, overlap another's scoring).
     """
 
     map: MapConfig = field(default_factory=MapConfig)
@@ -78,9 +81,11 @@ class BatchConfig:
     max_retries: int = 3
     resume: bool = True
     chunk_frames: int = 16
+    logs_at_once: int = 1
 
     def __post_init__(self) -> None:
-        for name, low in (("workers", 1), ("actors_per_gpu", 1), ("max_retries", 0), ("chunk_frames", 1)):
+        for name, low in (("workers", 1), ("actors_per_gpu", 1), ("max_retries", 0), ("chunk_frames", 1),
+                          ("logs_at_once", 1)):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < low):
                 raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
@@ -226,7 +231,8 @@ class _Executors:
         if not cfg.ray:
             workers = cfg.workers or cpu_count()
             self.ex = make_executor(workers)
-            self.description = {"kind": "processes" if workers > 1 else "in-process", "workers": workers}
+            self.description = {"kind": "processes" if workers > 1 else "in-process", "started": True,
+                                "workers": workers}
             return self.ex
         from memlog.progress import is_quiet
         from memlog.steps.ray_pool import RayActors, cluster_resources, connect, plan_placement
@@ -242,7 +248,8 @@ class _Executors:
             raise
         self.ex = ex
         devices = sorted({str(i["providers"][0]).removesuffix("ExecutionProvider").lower() for i in ex.info})
-        self.description = {"kind": "ray", "address": cfg.ray_address, "cluster_cpus": cpus, "cluster_gpus": gpus,
+        self.description = {"kind": "ray", "started": True, "address": cfg.ray_address, "cluster_cpus": cpus,
+                            "cluster_gpus": gpus,
                             **placement.to_dict(), "devices": devices,
                             "hosts": sorted({str(i["host"]) for i in ex.info})}
         info(f"memlog: Ray: {placement.actors} actor(s) x {placement.threads} CPU"
@@ -321,6 +328,8 @@ def batch(
     all_logs = [str(x) for x in logs] + (read_manifest(manifest) if manifest is not None else [])
     if not all_logs:
         raise ConfigError("batch: no logs given (LOG... or --manifest FILE)")
+    if cfg.ray:  # workers on other nodes have another working directory
+        all_logs = [os.path.abspath(x) for x in all_logs]
     out = check_output(outdir, all_logs, flag="-o", directory=True)
     summary_path = Path(summary) if summary is not None else out / SUMMARY_NAME
     if summary is not None:
@@ -336,6 +345,7 @@ def batch(
     key = cfg.settings_key()
     window = cfg.window()
     with _locked(out):
+        _remove_leftovers(out, items)
         previous = _read_summary(summary_path)
         results: list[LogResult] = []
         todo: list[tuple[LogResult, int | None]] = []
@@ -367,11 +377,9 @@ def batch(
 
         try:
             with redirect(sink):
-                for k, (r, _) in enumerate(todo):
-                    assert bar is not None
-                    bar.set_note(f"log {k + 1}/{len(todo)}: {r.name}")
-                    _run_one(r, cfg, window, key, executors)
-                    line = f"memlog: {r.name}: {r.status}"
+                runs = [r for r, _ in todo]
+                for k, r in enumerate(_run_all(runs, cfg, window, key, executors, bar)):
+                    line = f"memlog: [{k + 1}/{len(runs)}] {r.name}: {r.status}"
                     if r.status != "failed":
                         line += f", {r.frames} frames, {r.kept} kept, {r.seconds:.1f} s"
                     if r.worker_failures:
@@ -383,6 +391,19 @@ def batch(
                 bar.close()
             executors.close()
         return save()
+
+
+def _remove_leftovers(outdir: Path, items: list[tuple[str, str, dict[str, str]]]) -> None:
+    """Temporary files of our outputs left by a run that was killed (``.NAME.*.tmp``, see
+    :class:`~memlog.io.atomic.AtomicFile`): nobody else writes them while we hold the lock."""
+    gone = 0
+    for _, _, outs in items:
+        for path in outs.values():
+            for tmp in outdir.glob(f".{glob.escape(Path(path).name)}.*.tmp"):
+                tmp.unlink(missing_ok=True)
+                gone += 1
+    if gone:
+        info(f"memlog: removed {gone} temporary file(s) an interrupted run left in {outdir}")
 
 
 def _preflight(log: str, name: str, outs: dict[str, str], window: FrameWindow, settings: str,
@@ -413,8 +434,47 @@ def _preflight(log: str, name: str, outs: dict[str, str], window: FrameWindow, s
     return r
 
 
-def _run_one(r: LogResult, cfg: BatchConfig, window: FrameWindow, settings: str, executors: _Executors) -> None:
-    """Score, then map, one log (``r`` is filled in)."""
+def _run_all(runs: list[LogResult], cfg: BatchConfig, window: FrameWindow, settings: str, executors: _Executors,
+             bar: Bar | None) -> Iterator[LogResult]:
+    """Run the logs, ``cfg.logs_at_once`` at a time (threads of this process sharing the workers),
+    yielding each as it finishes."""
+    if cfg.logs_at_once == 1 or len(runs) == 1 or isinstance(executors.get(), InProcess):  # (one process's
+        # models are not shared by threads: the detector's OpenCV net is not thread-safe)
+        for k, one in enumerate(runs):
+            if bar is not None:
+                bar.set_note(f"log {k + 1}/{len(runs)}: {one.name}")
+            _run_one(one, cfg, window, settings, executors)
+            yield one
+        return
+    from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+
+    it = iter(runs)
+    running: dict[Future[None], LogResult] = {}
+    with ThreadPoolExecutor(cfg.logs_at_once, thread_name_prefix="memlog-log") as pool:
+        try:
+            while True:
+                while len(running) < cfg.logs_at_once:
+                    nxt = next(it, None)
+                    if nxt is None:
+                        break
+                    running[pool.submit(_run_one, nxt, cfg, window, settings, executors, False)] = nxt
+                if not running:
+                    return
+                if bar is not None:
+                    bar.set_note("running " + ", ".join(r.name for r in running.values()))
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for f in done:
+                    f.result()
+                    yield running.pop(f)
+        except BaseException:
+            executors.close()  # the other logs' jobs fail now: their outputs are dropped, not finished
+            raise
+
+
+def _run_one(r: LogResult, cfg: BatchConfig, window: FrameWindow, settings: str, executors: _Executors,
+             alone: bool = True) -> None:
+    """Score, then map, one log (``r`` is filled in); ``alone``: no other log runs meanwhile (a
+    broken local pool is then made again for the next log)."""
     from concurrent.futures.process import BrokenProcessPool
 
     t0 = time.perf_counter()
@@ -436,7 +496,8 @@ def _run_one(r: LogResult, cfg: BatchConfig, window: FrameWindow, settings: str,
     except BrokenProcessPool:
         r.status, r.error = "failed", "a worker process died (out of memory?); the pool was restarted"
         r.worker_failures = 1
-        executors.close()
+        if alone:
+            executors.close()
     except Exception as exc:  # a bug: the other logs still run; the summary says what happened
         if os.environ.get("MEMLOG_DEBUG"):
             import traceback

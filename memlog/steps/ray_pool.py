@@ -44,6 +44,10 @@ RAY_INSTALL = "pip install 'memlog[ray]'"
 KILL_HOOK = "MEMLOG_TEST_KILL_WORKER"
 
 
+#: Default cap on actors sharing one GPU (each holds a ResMem session, ~1-1.5 GB of GPU memory).
+MAX_ACTORS_PER_GPU = 16
+
+
 class WorkerLostError(MemlogError):
     """A job's worker process died on every attempt (out of memory, a crash, a lost node)."""
 
@@ -112,11 +116,12 @@ def plan_placement(cpus: float, gpus: float, *, workers: int | None = None, thre
                    device: str = "auto", actors_per_gpu: int | None = None) -> Placement:
     """The actors for a cluster of ``cpus`` CPUs and ``gpus`` GPUs.
 
-    CPU only (no GPU, or ``device`` cpu): ``threads`` CPUs per actor (default 1: ResMem's
-    throughput per core is best single-threaded) and as many actors as the CPUs hold, or
-    ``workers``. With GPUs (``device`` auto or cuda): ``actors_per_gpu`` actors share each GPU
-    (default: the CPUs per GPU over ``threads``, at most 4), because decoding, the detector and
-    entropy stay on the CPU and one actor alone leaves the GPU idle between frames.
+    CPU only (no GPU, or ``device`` cpu): ``threads`` CPUs per actor (default 1) and as many
+    actors as the CPUs hold, or ``workers``. With GPUs (``device`` auto or cuda):
+    ``actors_per_gpu`` actors share each GPU (default: the CPUs per GPU over ``threads``, at most
+    :data:`MAX_ACTORS_PER_GPU`): decoding, the detector and entropy stay on the CPU (~0.2
+    core-seconds per frame) while ResMem needs ~5 ms of an H100 per frame, so a GPU needs the
+    frames of many CPU workers; the cap bounds the GPU memory of their ONNX Runtime sessions.
     Raises :class:`ConfigError` when the cluster cannot hold what was asked."""
     t = threads or 1
     if device == "cuda" and gpus <= 0:
@@ -124,7 +129,7 @@ def plan_placement(cpus: float, gpus: float, *, workers: int | None = None, thre
     if cpus < t:
         raise ConfigError(f"--threads {t}: the Ray cluster has only {cpus:g} CPU(s)")
     if device != "cpu" and gpus > 0:
-        per_gpu = actors_per_gpu or max(1, min(4, int(cpus / gpus) // t))
+        per_gpu = actors_per_gpu or max(1, min(MAX_ACTORS_PER_GPU, int(cpus / gpus) // t))
         share = 1.0 / per_gpu
         n = workers or max(1, min(int(gpus * per_gpu), int(cpus // t)))
         if n * share > gpus + 1e-9 or n * t > cpus:
