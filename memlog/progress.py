@@ -116,6 +116,15 @@ class Bar:
         if self._bar is not None:
             self._bar.set_postfix_str(text, refresh=False)
 
+    def write(self, text: str) -> None:
+        """A status line (as :func:`info`) that does not break the bar."""
+        if self._bar is not None:
+            from tqdm import tqdm
+
+            tqdm.write(text, file=sys.stderr)
+        else:
+            info(text)
+
     def update(self, n: int = 1) -> None:
         self.n += n
         if self._bar is not None:

@@ -384,7 +384,7 @@ def batch(
                         line += f", {r.frames} frames, {r.kept} kept, {r.seconds:.1f} s"
                     if r.worker_failures:
                         line += f", {r.worker_failures} worker failure(s) retried"
-                    info(line + (f": {r.error}" if r.error else ""))
+                    (bar.write if bar is not None else info)(line + (f": {r.error}" if r.error else ""))
                     save()
         finally:
             if bar is not None:
