@@ -87,6 +87,25 @@ def test_usage_errors_before_any_work(tmp_path: Path, capsys: pytest.CaptureFixt
     assert not out.exists()
 
 
+def test_config_file_batch_table_then_flags(tmp_path: Path) -> None:
+    from memlog.cli.app import build_parser
+    from memlog.cli.commands import batch_config
+
+    conf = tmp_path / "fleet.toml"
+    conf.write_text("[batch]\nworkers = 3\nlogs_at_once = 2\nmax_retries = 1\n[map]\nstride = 4\n[score]\nmt = 0.6\n")
+    args = build_parser().parse_args(["batch", "a.mcap", "-o", "out", "--config", str(conf), "--workers", "5",
+                                      "--ray", "auto"])
+    cfg = batch_config(args)
+    assert (cfg.workers, cfg.logs_at_once, cfg.max_retries, cfg.ray, cfg.ray_address) == (5, 2, 1, True, "auto")
+    assert cfg.map.stride == 4 and cfg.map.score.mt == 0.6 and cfg.window().stride == 4
+    conf.write_text("[batch]\nworkers = 0\n")
+    with pytest.raises(ConfigError, match=r"\[batch\].*workers"):
+        batch_config(build_parser().parse_args(["batch", "a.mcap", "-o", "out", "--config", str(conf)]))
+    conf.write_text("[batch]\nmap = {stride = 2}\n")
+    with pytest.raises(ConfigError, match=r"\[map\] table"):
+        batch_config(build_parser().parse_args(["batch", "a.mcap", "-o", "out", "--config", str(conf)]))
+
+
 # -- local worker processes, resume ----------------------------------------------------------------
 def test_local_workers_write_what_one_process_writes_and_resume(tmp_path: Path,
                                                                 monkeypatch: pytest.MonkeyPatch) -> None:

@@ -363,7 +363,10 @@ def batch_config(args: argparse.Namespace) -> Any:
 
     mcfg = map_config(args)
     where = f"{args.config}: [batch]" if getattr(args, "config", None) else "[batch]"
-    cfg = build(BatchConfig, file_section(args, "batch"), where, BatchConfig(map=mcfg))
+    section = file_section(args, "batch")
+    if "map" in section:
+        raise ConfigError(f"{where}: map settings go in the [map] table (and [score], [select])")
+    cfg = build(BatchConfig, section, where, BatchConfig(map=mcfg))
     flags: dict[str, Any] = {}
     if args.ray is not None:
         flags["ray"] = True

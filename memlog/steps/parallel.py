@@ -6,7 +6,9 @@ results **in job order** whatever order they finish in, so a single writer can m
 outputs that are byte-identical to a one-process run. :class:`InProcess` runs them here;
 :class:`Processes` on a pool of worker processes, each with its own models (loaded once per
 process, see :func:`cached`) and ONNX Runtime thread count, so workers do not oversubscribe the
-cores. The Ray executor of ``memlog batch`` implements the same interface.
+cores. The Ray executor of ``memlog batch`` (:mod:`memlog.steps.ray_pool`) implements the same
+interface; an executor may also say how many threads its jobs should use (``threads``, see
+:func:`job_threads`) and that its workers are other machines (``remote``).
 """
 
 from __future__ import annotations

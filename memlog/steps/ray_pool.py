@@ -214,6 +214,9 @@ class RayActors:
         except ray.exceptions.RayTaskError as err:
             self.close()
             raise _cause(err) from None
+        except ray.exceptions.RayError as err:  # an actor died while starting (memlog missing on a node?)
+            self.close()
+            raise MemlogError(f"Ray actors could not start: {type(err).__name__}: {err}") from None
         except BaseException:
             self.close()
             raise
