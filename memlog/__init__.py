@@ -5,6 +5,7 @@ The Python API (for notebooks) is the pipeline steps with their typed configs::
     import memlog
     run = memlog.score("drive.bag", "drive.scored.mcap", memlog.ScoreConfig(all_scores=True))
     res = memlog.make_map("drive.bag", "map.mcap", memlog.MapConfig(), scores="drive.scored.mcap")
+    fleet = memlog.batch(["a.mcap", "b.bag"], "out", memlog.BatchConfig(ray=True))  # memlog[ray]
     loc = memlog.localize("map.parquet", "query.bag", "matches.parquet")
 
 Names load on first use, so ``import memlog`` is cheap.
@@ -22,6 +23,7 @@ if TYPE_CHECKING:
     from memlog.io.open import open_log as open_log
     from memlog.scoring.config import ScoreConfig as ScoreConfig
     from memlog.selection.config import SelectionConfig as SelectionConfig
+    from memlog.steps.batch import BatchConfig as BatchConfig, batch as batch
     from memlog.steps.convert import ConvertConfig as ConvertConfig, convert as convert
     from memlog.steps.evaluate import EvaluateConfig as EvaluateConfig, evaluate as evaluate
     from memlog.steps.localize import LocalizeConfig as LocalizeConfig, localize as localize
@@ -42,6 +44,8 @@ _WHERE = {
     "localize": "memlog.steps.localize",
     "LocalizeConfig": "memlog.steps.localize",
     "evaluate": "memlog.steps.evaluate",
+    "batch": "memlog.steps.batch",
+    "BatchConfig": "memlog.steps.batch",
     "EvaluateConfig": "memlog.steps.evaluate",
 }
 

@@ -2,20 +2,27 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any, TypeVar
 
-__all__ = ["progress", "set_quiet", "info"]
+__all__ = ["progress", "set_quiet", "is_quiet", "info", "Bar", "redirect"]
 
 T = TypeVar("T")
 _QUIET = False
+#: While set (:func:`redirect`), :func:`progress` draws nothing and calls it with (desc, unit) per item.
+_SINK: Callable[[str, str], None] | None = None
 
 
 def set_quiet(quiet: bool) -> None:
     global _QUIET
     _QUIET = quiet
+
+
+def is_quiet() -> bool:
+    return _QUIET
 
 
 def info(text: str) -> None:
@@ -56,6 +63,12 @@ def progress(it: Iterable[T], *, total: int | None = None, desc: str = "", unit:
              every_s: float = 30.0, **kw: Any) -> Iterator[T]:
     """Wrap an iterable in a tqdm bar on a terminal, or status lines every ``every_s`` seconds
     otherwise; nothing with --quiet."""
+    sink = _SINK
+    if sink is not None:
+        for x in it:
+            yield x
+            sink(desc, unit)
+        return
     if _QUIET:
         yield from it
         return
@@ -67,3 +80,71 @@ def progress(it: Iterable[T], *, total: int | None = None, desc: str = "", unit:
     # miniters=1: the count on screen follows every item (a fast copy showed "0msg" until it ended)
     yield from tqdm(it, total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=False, miniters=1,
                     mininterval=0.2, **kw)
+
+
+@contextlib.contextmanager
+def redirect(sink: Callable[[str, str], None]) -> Iterator[None]:
+    """Inside the block, :func:`progress` loops draw nothing and call ``sink(desc, unit)`` once
+    per item instead (a caller that runs several steps shows one bar over all of them)."""
+    global _SINK
+    old, _SINK = _SINK, sink
+    try:
+        yield
+    finally:
+        _SINK = old
+
+
+class Bar:
+    """A progress bar advanced by hand (:meth:`update`): tqdm on a terminal, a status line every
+    ``every_s`` seconds otherwise (with the time left), nothing when quiet."""
+
+    def __init__(self, total: int | None, desc: str, unit: str, every_s: float = 30.0) -> None:
+        self.total, self.desc, self.unit, self.every_s = total, desc, unit, every_s
+        self.n = 0
+        self.note = ""
+        self._t0 = self._last = time.monotonic()
+        self._bar: Any = None
+        self._closed = False
+        if not _QUIET and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=False, mininterval=0.2)
+
+    def set_note(self, text: str) -> None:
+        """A short text shown with the count (e.g. which log is running)."""
+        self.note = text
+        if self._bar is not None:
+            self._bar.set_postfix_str(text, refresh=False)
+
+    def write(self, text: str) -> None:
+        """A status line (as :func:`info`) that does not break the bar."""
+        if self._bar is not None:
+            from tqdm import tqdm
+
+            tqdm.write(text, file=sys.stderr)
+        else:
+            info(text)
+
+    def update(self, n: int = 1) -> None:
+        self.n += n
+        if self._bar is not None:
+            self._bar.update(n)
+            return
+        now = time.monotonic()
+        if not _QUIET and now - self._last >= self.every_s:
+            self._last = now
+            print(self._line(now, False), file=sys.stderr, flush=True)
+
+    def _line(self, now: float, done: bool) -> str:
+        line = _status(self.desc, self.n, self.total, self.unit, now - self._t0, done)
+        return f"{line}; {self.note}" if self.note else line
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+        elif not _QUIET:
+            print(self._line(time.monotonic(), True), file=sys.stderr, flush=True)

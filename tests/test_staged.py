@@ -18,16 +18,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from memlog.models.resmem import OUTPUT_NAME
 from memlog.outputs.annotated import read_scores
 from memlog.scoring.config import ScoreConfig
-from memlog.scoring.memorability import Memorability
-from memlog.scoring.scorer import Scorer
 from memlog.selection import ScoreTable
 from memlog.selection.config import SelectionConfig
 from memlog.selection.segment import geometric_score, select_segments, SegmentConfig
 from memlog.selection.staged import MSResult, choose_in_segment, ms_to_beat, shortlist_rows
-from memlog.steps import map_scoring
 from memlog.steps.map import MapConfig, make_map
 from memlog.steps.score import score
 from tests.conftest import FIXTURES, shared
@@ -152,36 +148,11 @@ def test_staged_map_equals_full_scoring_with_resmem(tmp_path: Path) -> None:
 
 
 # -- shared logs, stand-in ResMem -----------------------------------------------------------------
-class _StandIn:
-    """An ONNX-session stand-in: a crop's 'memorability' is a smooth function of its pixels."""
-
-    def run(self, names: list[str], feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
-        assert names == [OUTPUT_NAME]
-        x = next(iter(feeds.values())).astype(np.float64)
-        mean = x.mean(axis=(1, 2, 3))
-        std = x.std(axis=(1, 2, 3))
-        return [(0.5 + 0.4 * np.tanh(3 * (mean - 0.45)) * 0.5 + 0.3 * std).reshape(-1, 1).astype(np.float32)]
-
-
-def _stand_in_scorer(config: ScoreConfig) -> Scorer:
-    mem = Memorability.__new__(Memorability)
-    mem.path, mem.batch, mem.session = Path("stand-in"), 5, _StandIn()
-    return Scorer(config, memorability=mem)
-
-
 @pytest.fixture()
 def stand_in(monkeypatch: pytest.MonkeyPatch) -> None:
-    cache: dict[ScoreConfig, Scorer] = {}
+    from tests.stand_in import use_stand_in
 
-    def scorer_for(config: ScoreConfig) -> Scorer:
-        if config not in cache:
-            cache[config] = _stand_in_scorer(config)
-        return cache[config]
-
-    monkeypatch.setattr(map_scoring, "_scorer_for", scorer_for)
-    from memlog.steps import score as score_mod
-
-    monkeypatch.setattr(score_mod, "_scorer_for", scorer_for)
+    use_stand_in(monkeypatch)
 
 
 @pytest.mark.parametrize("name,stride", [("euroc_micro_ros2_db3", 3), ("nordland_dev_summer.mcap", 20)])

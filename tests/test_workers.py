@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
-from mcap.reader import make_reader
 
 from memlog.io import FrameWindow
 from memlog.scoring.config import ScoreConfig
@@ -14,31 +12,7 @@ from memlog.steps.parallel import InProcess, Processes, threads_per_worker
 from memlog.steps.score import plan_chunks, score
 from memlog.io.open import open_log
 from tests.conftest import FIXTURES
-
-
-def _normalised(path: Path) -> tuple[list[tuple], dict[str, list[dict]], dict[str, dict[str, str]]]:
-    """Every message but the score records (topic, times, sequence, bytes); the score records
-    (decoded, whatever their encoding) without their timing; the metadata without the run's timing."""
-    from memlog.outputs.annotated import read_scores
-
-    msgs = []
-    with open(path, "rb") as fh:
-        r = make_reader(fh, validate_crcs=True)
-        for _, ch, m in r.iter_messages(log_time_order=False):
-            if not ch.topic.endswith("/memlog/scores"):
-                msgs.append((ch.topic, m.log_time, m.publish_time, m.sequence, bytes(m.data)))
-        meta = {md.name: dict(md.metadata) for md in r.iter_metadata()}
-    scores = read_scores(path)
-    for recs in scores.values():
-        for rec in recs:
-            rec.pop("timing_ms")
-    summary = {k: json.loads(v) for k, v in meta["memlog_summary"].items()}
-    summary.pop("seconds")
-    summary.pop("output")
-    for t in summary["topics"].values():
-        t.pop("mean_ms_per_frame")
-    meta["memlog_summary"] = summary
-    return msgs, scores, meta
+from tests.same_outputs import normalised_scored as _normalised
 
 
 def test_two_workers_write_the_same_log_as_one(tmp_path: Path) -> None:

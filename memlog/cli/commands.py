@@ -25,7 +25,9 @@ from memlog.cli.flags import (
     int_range,
     log_time,
     nonneg_float,
+    nonneg_int,
     positive_int,
+    ray_address,
     score_config,
     selection_config,
 )
@@ -176,20 +178,15 @@ def add_score(sub: Any) -> None:
     p.set_defaults(func=cmd_score)
 
 
-def _log_name(log: str) -> str:
-    name = Path(log.rstrip("/")).name
-    for suffix in (".mcap", ".bag", ".db3"):
-        name = name.removesuffix(suffix)
-    return name
-
-
 def _score_outputs(logs: list[str], output: str) -> list[str]:
     if len(logs) == 1:
         return [output]
     out_dir = Path(output)
     if not out_dir.is_dir():
         raise ConfigError(f"-o {output}: with several logs, -o must be an existing directory")
-    names = [_log_name(log) for log in logs]
+    from memlog.io.identity import log_name
+
+    names = [log_name(log) for log in logs]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ConfigError(f"-o {output}: several logs are named {', '.join(dup)}; their outputs would collide "
@@ -249,6 +246,16 @@ def add_map(sub: Any) -> None:
     p.add_argument("log", help="MCAP file, ROS 1 .bag or ROS 2 bag directory")
     p.add_argument("-o", "--output", required=True, help="map .mcap (its directory must exist)")
     p.add_argument("--scores", help="annotated MCAP of this log from `memlog score` to reuse instead of scoring again")
+    p.add_argument("--descriptors", help="descriptor Parquet path (default: MAP.parquet)")
+    p.add_argument("--json", action="store_true", help="print the map summary as JSON")
+    p.add_argument("--workers", type=positive_int, help="worker processes scoring frames (default 1)")
+    _add_map_settings(p)
+    add_config_flags(p)
+    p.set_defaults(func=cmd_map)
+
+
+def _add_map_settings(p: argparse.ArgumentParser) -> None:
+    """The map step's flags (``memlog map`` and ``memlog batch``)."""
     add_selection_flags(p)
     p.add_argument("--keep-topic", action="append", metavar="TOPIC", help="copy this topic whole (GPS, odometry...)")
     p.add_argument("--position-topic", help="NavSatFix/pose/odometry topic for positions (default: first found)")
@@ -256,23 +263,18 @@ def add_map(sub: Any) -> None:
     p.add_argument("--jpeg-quality", type=int_range(1, 100), help="JPEG quality of raw frames, 1..100 (default 90)")
     p.add_argument("--descriptor", help="reference descriptor: auto (default: by frame size), a kind "
                                         "(thumbnail, dinov2-gem, ...) or none")
-    p.add_argument("--descriptors", help="descriptor Parquet path (default: MAP.parquet)")
     p.add_argument("--descriptor-dtype", choices=["float32", "float16"],
                    help="storage of the descriptors (default float32; float16 halves the file)")
     p.add_argument("--no-whiten", action="store_true",
                    help="do not fit and store a PCA-whitening of the descriptors (default: whitened)")
     p.add_argument("--whiten-dim", type=positive_int,
                    help="largest whitened dimension (default 512; never more than half the frames)")
-    p.add_argument("--json", action="store_true", help="print the map summary as JSON")
     p.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC", help="camera topic(s) to map")
     p.add_argument("--stride", type=positive_int, help="consider every n-th frame of each topic (default 1)")
-    p.add_argument("--workers", type=positive_int, help="worker processes scoring frames (default 1)")
     p.add_argument("--candidates", type=positive_int, metavar="K",
                    help="segment selection: run ResMem on at most K frames per segment, the best by staticity and "
                         "entropy spread over the segment (approximate; default: exactly the frames that can still "
                         "win, which keeps the same frames as scoring every frame)")
-    add_config_flags(p)
-    p.set_defaults(func=cmd_map)
 
 
 def map_config(args: argparse.Namespace) -> Any:
@@ -292,7 +294,7 @@ def map_config(args: argparse.Namespace) -> Any:
         flags["keep_topics"] = tuple(args.keep_topic)
     for key in ("position_topic", "image_format", "jpeg_quality", "descriptors", "descriptor_dtype", "stride", "workers",
                 "candidates"):
-        v = getattr(args, key)
+        v = getattr(args, key, None)
         if v is not None:
             flags["descriptors_path" if key == "descriptors" else key] = v
     if args.descriptor is not None:
@@ -334,6 +336,81 @@ def cmd_map(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(d, indent=2))
     return report_damage(*([res.report] if res.report is not None else []))
+
+
+# -- batch --------------------------------------------------------------------------------------
+def add_batch(sub: Any) -> None:
+    p = sub.add_parser("batch", help="score and map many logs, on local worker processes or a Ray cluster",
+                       description="For every log: `memlog score` then `memlog map` (the same outputs as those "
+                                   "commands on one process, timing fields aside) into OUTDIR/NAME.scored.mcap, "
+                                   "NAME.map.mcap and NAME.map.parquet. Chunks of frames run on local worker "
+                                   "processes, or with --ray as Ray actors (models loaded once per actor; a job whose "
+                                   "worker died is run again). A rerun skips logs whose outputs are up to date (same "
+                                   "input, same settings). A damaged or unreadable log is reported and the others go "
+                                   "on; OUTDIR/batch.json summarises the run.")
+    p.add_argument("logs", nargs="*", metavar="LOG", help="MCAP file, ROS 1 .bag or ROS 2 bag directory")
+    p.add_argument("-o", "--output", required=True, metavar="OUTDIR",
+                   help="output directory (created when its parent exists)")
+    p.add_argument("--manifest", metavar="FILE",
+                   help="text file listing more logs, one path per line (relative to the file; # comments)")
+    p.add_argument("--ray", nargs="?", const="local", type=ray_address, metavar="ADDRESS",
+                   help="run the jobs on Ray: the cluster at ADDRESS (auto, ray://HOST:10001, HOST:6379) or, without "
+                        "ADDRESS, $RAY_ADDRESS or a new local Ray instance (needs memlog[ray])")
+    p.add_argument("--workers", type=positive_int,
+                   help="local worker processes (default: the cores); with --ray, Ray actors (default: as many as "
+                        "the cluster's CPUs, or GPUs, hold)")
+    p.add_argument("--actors-per-gpu", type=positive_int, metavar="N",
+                   help="with --ray on GPUs: actors sharing one GPU (default: CPUs per GPU / --threads, at most 16)")
+    p.add_argument("--max-retries", type=nonneg_int, help="attempts at a job after its worker died (default 3)")
+    p.add_argument("--logs-at-once", type=positive_int, metavar="N",
+                   help="logs worked on at the same time, sharing the workers (default 1)")
+    p.add_argument("--no-resume", action="store_true", help="score and map every log, even those up to date")
+    p.add_argument("--summary", metavar="FILE", help="JSON summary (default OUTDIR/batch.json; resume reads it)")
+    _add_map_settings(p)
+    add_config_flags(p)
+    p.set_defaults(func=cmd_batch, descriptors=None)
+
+
+def batch_config(args: argparse.Namespace) -> Any:
+    """The batch config: the file's [batch] table, then flags; scoring, selection and the map step
+    as for `memlog map`."""
+    from memlog.steps.batch import BatchConfig
+
+    mcfg = map_config(args)
+    where = f"{args.config}: [batch]" if getattr(args, "config", None) else "[batch]"
+    section = file_section(args, "batch")
+    if "map" in section:
+        raise ConfigError(f"{where}: map settings go in the [map] table (and [score], [select])")
+    cfg = build(BatchConfig, section, where, BatchConfig(map=mcfg))
+    flags: dict[str, Any] = {}
+    if args.ray is not None:
+        flags["ray"] = True
+        flags["ray_address"] = None if args.ray == "local" else args.ray
+    for key in ("workers", "actors_per_gpu", "max_retries", "logs_at_once"):
+        if getattr(args, key) is not None:
+            flags[key] = getattr(args, key)
+    if args.no_resume:
+        flags["resume"] = False
+    return _with_flags(BatchConfig, flags, cfg)
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    from memlog.steps.batch import batch
+
+    res = batch(args.logs, args.output, batch_config(args), manifest=args.manifest, summary=args.summary)
+    rows = []
+    for r in res.logs:
+        note = r.error or "; ".join(r.damage)
+        rows.append([r.name, r.status, "-" if r.frames is None else str(r.frames), "-" if r.kept is None else str(r.kept),
+                     f"{r.seconds:.1f} s" if r.status != "skipped" else "-", str(r.worker_failures), note])
+    print(table(rows, ["log", "status", "frames", "kept", "time", "worker failures", "damage / error"]))
+    d = res.to_dict()["totals"]
+    info(f"memlog: {d['logs']} log(s): {d['ok']} ok, {d['damaged']} damaged, {d['failed']} failed, {d['skipped']} "
+         f"skipped (up to date); {d['frames']} frames in {res.seconds:.1f} s; summary {res.summary}")
+    for r in res.logs:
+        if r.report is not None:
+            report_damage(r.report)
+    return res.exit_code
 
 
 # -- localize -----------------------------------------------------------------------------------
@@ -452,8 +529,13 @@ def evaluate_config(args: argparse.Namespace) -> Any:
     if args.start is not None or args.end is not None or args.stride != 1:
         flags["window"] = frame_window(args, args.reference)
         flags["query_window"] = frame_window(args, args.query)
+    return _with_flags(EvaluateConfig, flags, cfg)
+
+
+def _with_flags(cls: Any, flags: dict[str, Any], cfg: Any) -> Any:
+    """``cfg`` with the settings given by flags (a bad value is a usage error naming its flag)."""
     try:
-        return build(EvaluateConfig, flags, "flags", cfg) if flags else cfg
+        return build(cls, flags, "flags", cfg) if flags else cfg
     except ConfigError as exc:
         raise ConfigError("--" + str(exc).removeprefix("flags: ")) from None
 
@@ -501,6 +583,7 @@ COMMANDS = {
     "convert": add_convert,
     "score": add_score,
     "map": add_map,
+    "batch": add_batch,
     "localize": add_localize,
     "evaluate": add_evaluate,
     "models": add_models,

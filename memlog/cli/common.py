@@ -27,19 +27,7 @@ def report_damage(*reports: ReadReport) -> int:
     for report in reports:
         if report.ok:
             continue
-        parts = []
-        if report.truncated:
-            parts.append(f"log truncated (read up to byte {report.bytes_read})" if report.bytes_read else "log truncated")
-        if report.skipped_chunks:
-            parts.append(f"{report.skipped_chunks} damaged chunk(s) skipped")
-        if report.bad_messages:
-            parts.append(f"{report.bad_messages} message(s) did not deserialize")
-        if report.undecodable_frames:
-            parts.append(f"{report.undecodable_frames} frame(s) did not decode")
-        if report.skipped_files:
-            parts.append(f"{report.skipped_files} unreadable storage file(s) skipped")
-        if report.index_damaged:
-            parts.append("its index is damaged or disagrees with the data (the data was read)")
+        parts = report.damage()
         print(f"memlog: {report.path}: finished with damaged input: {'; '.join(parts)}", file=sys.stderr)
         code = EXIT_DAMAGED
     return code

@@ -19,7 +19,7 @@ from memlog.selection.config import SelectionConfig
 
 __all__ = [
     "unit_interval", "fraction", "positive_float", "nonneg_float", "positive_int", "nonneg_int", "int_range",
-    "cosine_distance", "log_time", "add_config_flags", "add_window_flags", "add_selection_flags",
+    "cosine_distance", "log_time", "ray_address", "add_config_flags", "add_window_flags", "add_selection_flags",
     "score_config", "selection_config", "frame_window", "file_section", "setting_names_to_flags",
 ]
 
@@ -103,6 +103,19 @@ def cosine_distance(text: str) -> float:
     if not 0.0 < v <= 2.0:
         raise argparse.ArgumentTypeError(f"must be a cosine distance in (0, 2], got {text}")
     return v
+
+
+_RAY_ADDRESS = re.compile(r"^(auto|local|ray://\S+|[\w.-]+:\d+|\[[0-9A-Fa-f:]+\]:\d+)$")
+
+
+def ray_address(text: str) -> str:
+    """A Ray cluster address: ``auto``, ``ray://HOST:PORT``, ``HOST:PORT`` (``local``: a new
+    local instance)."""
+    if not _RAY_ADDRESS.match(text):
+        raise argparse.ArgumentTypeError(
+            f"expected auto, ray://HOST:PORT or HOST:PORT, got {text!r} (for a local Ray instance, put --ray after "
+            "the logs or before another flag)")
+    return text
 
 
 _TIME = re.compile(r"^\+?\d+(\.\d*)?$|^\+?\.\d+$")

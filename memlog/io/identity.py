@@ -12,7 +12,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["log_identity", "same_identity"]
+__all__ = ["log_identity", "same_identity", "log_name"]
 
 
 def log_identity(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -33,3 +33,12 @@ def same_identity(recorded: Any, path: str | os.PathLike[str]) -> bool:
         return isinstance(recorded, dict) and recorded == log_identity(path)
     except OSError:
         return False
+
+
+def log_name(path: str | os.PathLike[str]) -> str:
+    """A log's name for the outputs made from it: the file or bag directory name without
+    ``.mcap``/``.bag``/``.db3``."""
+    name = Path(str(path).rstrip("/")).name
+    for suffix in (".mcap", ".bag", ".db3"):
+        name = name.removesuffix(suffix)
+    return name

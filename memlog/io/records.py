@@ -83,3 +83,20 @@ class ReadReport:
     def ok(self) -> bool:
         return not (self.truncated or self.skipped_chunks or self.bad_messages or self.undecodable_frames
                     or self.index_damaged or self.skipped_files)
+
+    def damage(self) -> list[str]:
+        """What was damaged, one phrase each (empty when :attr:`ok`)."""
+        parts = []
+        if self.truncated:
+            parts.append(f"log truncated (read up to byte {self.bytes_read})" if self.bytes_read else "log truncated")
+        if self.skipped_chunks:
+            parts.append(f"{self.skipped_chunks} damaged chunk(s) skipped")
+        if self.bad_messages:
+            parts.append(f"{self.bad_messages} message(s) did not deserialize")
+        if self.undecodable_frames:
+            parts.append(f"{self.undecodable_frames} frame(s) did not decode")
+        if self.skipped_files:
+            parts.append(f"{self.skipped_files} unreadable storage file(s) skipped")
+        if self.index_damaged:
+            parts.append("its index is damaged or disagrees with the data (the data was read)")
+        return parts

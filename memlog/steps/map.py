@@ -48,7 +48,7 @@ from memlog.selection.config import SelectionConfig
 from memlog.selection.segment import SegmentConfig, segment_ids
 from memlog.selection.staged import MSState
 from memlog.steps.map_scoring import CheapFrame, SegmentJob, cheap_frames, choose_chunk, staged_record
-from memlog.steps.parallel import Executor, make_executor, threads_per_worker
+from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
 from memlog.steps.score import scored_frames
 
 __all__ = ["make_map", "MapConfig", "MapResult", "score_table", "EmptyMapError", "collect_scores"]
@@ -327,8 +327,8 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
     states: dict[tuple[str, int], MSState] = {}
     group = max(1, min(32, len(jobs) // max(1, 4 * ex.workers)))
     batches = [jobs[i:i + group] for i in range(0, len(jobs), group)]
-    wcfg = score_cfg.replace(threads=threads_per_worker(ex.workers, score_cfg.threads))
-    args = ((log, wcfg if ex.workers > 1 else score_cfg, window, [j for _, _, j in b], sel_cfg.weights,
+    wcfg = score_cfg.replace(threads=job_threads(ex, score_cfg.threads))
+    args = ((log, score_cfg if isinstance(ex, InProcess) else wcfg, window, [j for _, _, j in b], sel_cfg.weights,
              sel_cfg.min_ms, cfg.candidates) for b in batches)
     results = progress(ex.map_ordered(choose_chunk, args), total=len(batches), desc="memorability", unit="job")
     for b, res in zip(batches, results):
@@ -377,7 +377,8 @@ def make_map(
     dpath = cfg.descriptors_file(output)
     inputs: list[Any] = [log] + ([scores] if isinstance(scores, (str, os.PathLike)) else [])
     check_output(output, inputs)
-    choose_providers(cfg.score.device)  # --device cuda without CUDA: said before any work
+    if not getattr(executor, "remote", False):  # (a cluster's workers check their own device)
+        choose_providers(cfg.score.device)  # --device cuda without CUDA: said before any work
     if dpath is not None:
         check_output(dpath, inputs + [output], flag="--descriptors")
     if sel_cfg.needs_distinctiveness and cfg.descriptor is None:

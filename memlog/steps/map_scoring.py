@@ -35,7 +35,7 @@ from memlog.scoring.config import ScoreConfig
 from memlog.scoring.scorer import FrameScore, Scorer, resize_frame
 from memlog.scoring.staticity import static_map
 from memlog.selection.staged import MSResult, MSState, choose_in_segment
-from memlog.steps.parallel import Executor, InProcess, cached, threads_per_worker
+from memlog.steps.parallel import Executor, InProcess, cached, job_threads
 from memlog.steps.score import Chunk, plan_chunks
 
 __all__ = ["CheapFrame", "cheap_chunk", "cheap_frames", "SegmentJob", "choose_chunk", "staged_record"]
@@ -107,7 +107,7 @@ def cheap_frames(log: str, reader: LogReader, config: ScoreConfig, window: Frame
         frames, _, _ = cheap_chunk(log, config, window, None, thumbs)
         yield from frames
         return
-    wcfg = config.replace(threads=threads_per_worker(executor.workers, config.threads))
+    wcfg = config.replace(threads=job_threads(executor, config.threads))
     for frames, rep, errors in executor.map_ordered(
             cheap_chunk, ((log, wcfg, window, c, thumbs) for c in plan_chunks(reader, window, chunk_frames))):
         reader.report.bad_messages += rep.bad_messages

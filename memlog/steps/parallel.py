@@ -6,7 +6,9 @@ results **in job order** whatever order they finish in, so a single writer can m
 outputs that are byte-identical to a one-process run. :class:`InProcess` runs them here;
 :class:`Processes` on a pool of worker processes, each with its own models (loaded once per
 process, see :func:`cached`) and ONNX Runtime thread count, so workers do not oversubscribe the
-cores. The Ray executor of ``memlog batch`` implements the same interface.
+cores. The Ray executor of ``memlog batch`` (:mod:`memlog.steps.ray_pool`) implements the same
+interface; an executor may also say how many threads its jobs should use (``threads``, see
+:func:`job_threads`) and that its workers are other machines (``remote``).
 """
 
 from __future__ import annotations
@@ -19,7 +21,8 @@ from typing import Any, Protocol, TypeVar
 
 from memlog.errors import ConfigError
 
-__all__ = ["Executor", "InProcess", "Processes", "make_executor", "cached", "cpu_count", "threads_per_worker"]
+__all__ = ["Executor", "InProcess", "Processes", "make_executor", "cached", "cpu_count", "threads_per_worker",
+           "job_threads"]
 
 R = TypeVar("R")
 Job = tuple[Any, ...]
@@ -48,6 +51,16 @@ def threads_per_worker(workers: int, threads: int = 0) -> int:
     if threads:
         return threads
     return max(1, cpu_count() // max(1, workers))
+
+
+def job_threads(executor: Executor, threads: int = 0) -> int:
+    """ONNX Runtime threads for the jobs of ``executor``: ``threads`` when given, else the
+    executor's own count when it declares one (a Ray actor's CPUs, on whatever node it runs),
+    else this machine's cores split between its workers."""
+    if threads:
+        return threads
+    own = getattr(executor, "threads", 0)
+    return int(own) if own else threads_per_worker(executor.workers)
 
 
 class InProcess:

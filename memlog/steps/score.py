@@ -43,7 +43,7 @@ from memlog.outputs.annotated import AnnotatedLogWriter
 from memlog.progress import progress
 from memlog.scoring.config import ScoreConfig
 from memlog.scoring.scorer import STAGES, FrameScore, Scorer, SharedScore
-from memlog.steps.parallel import Executor, InProcess, cached, make_executor, threads_per_worker
+from memlog.steps.parallel import Executor, InProcess, cached, job_threads, make_executor
 
 __all__ = ["score", "ScoreRun", "TopicSummary", "iter_scores", "ScoredFrame", "ScoredChunk", "score_chunk",
            "plan_chunks", "Chunk", "scored_frames"]
@@ -309,7 +309,7 @@ def scored_frames(
                 raise AssertionError("unresolved shared score")
             yield ScoredFrame(_stripped(f), s, e)
         return
-    wcfg = config.replace(threads=threads_per_worker(executor.workers, config.threads))
+    wcfg = config.replace(threads=job_threads(executor, config.threads))
     chunks = plan_chunks(reader, window, chunk_frames)
     last: dict[str, tuple[int, FrameScore]] = {}
     for res in executor.map_ordered(score_chunk, ((str(log), wcfg, window, c) for c in chunks)):
@@ -365,14 +365,15 @@ def score(
     window = window or FrameWindow()
     t_start = time.perf_counter()
     check_output(output, [log])
-    choose_providers(config.device)  # --device cuda without CUDA: said now, not after copying the log
+    if not getattr(executor, "remote", False):  # (a cluster's workers check their own device)
+        choose_providers(config.device)  # --device cuda without CUDA: said now, not after copying the log
     own = executor is None
     ex = executor or make_executor(workers)
     try:
         with open_log(log) as reader:
             topics = reader.check_camera_topics(window.topics)
             sc = None
-            if ex.workers == 1:  # with workers, the models load in the worker processes
+            if isinstance(ex, InProcess):  # with workers, the models load in the worker processes
                 sc = (scorer or Scorer(config)).load()
             prov: dict[str, Any] = {}
             errors: list[FrameError] = []
