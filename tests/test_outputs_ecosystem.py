@@ -85,8 +85,8 @@ class FakeScorer(Scorer):
     def provenance(self) -> dict[str, Any]:
         return {"models": {"stand-in": "0" * 64}, "devices": {"stand-in": "cpu"}}
 
-    def score_stream(self, items: Iterable[T], decode: Callable[[T], np.ndarray],
-                     prefetch: int = 2) -> Iterator[tuple[T, FrameScore | Exception]]:
+    def score_stream(self, items: Iterable[T], decode: Callable[[T], np.ndarray],  # type: ignore[override]
+                     prefetch: int = 2, **_: Any) -> Iterator[tuple[T, FrameScore | Exception]]:
         for item in items:
             try:
                 img = decode(item)
@@ -315,21 +315,22 @@ RECORD_EMPTY_MATRIX = {  # not written by memlog (the matrix is 5x5 or null), bu
     "timestamp": {"sec": 5, "nsec": 6}, "log_time": 11, "topic": "/c", "frame_index": 2, "ms": 0.5, "ms_low": 0.5,
     "ms_high": 0.5, "ms_exact": True, "ss": 0.5, "es": 0.5, "memorability": [], "crops_scored": 0,
     "crops_surrogate": 0, "selected": True, "rejected_by": None, "thresholds": {"mt": 0.5, "st": 0.5, "et": 0.5},
-    "detections": 0, "timing_ms": {}, "error": None}
+    "detections": 0, "timing_ms": {}, "error": None, "shared": False, "shared_from": 2}
 RECORDS = [
     {"timestamp": {"sec": 12, "nsec": 999_999_999}, "log_time": 2**62 + 5, "topic": "/cam/ä", "frame_index": 7,
      "ms": 0.612345, "ms_low": 0.5, "ms_high": 0.75, "ms_exact": False, "ss": 1.0, "es": 0.0,
      "memorability": [[0.5, None, 0.25, 0.0, 1.0]] + [[None] * 5] * 4, "crops_scored": 3, "crops_surrogate": 22,
      "selected": True, "rejected_by": None, "thresholds": {"mt": 0.5, "st": 0.6, "et": 0.4}, "detections": 0,
-     "timing_ms": {"decode": 1.5, "memorability": 4000.125}, "error": None},
+     "timing_ms": {"decode": 1.5, "memorability": 4000.125}, "error": None, "shared": True, "shared_from": 5},
     {"timestamp": {"sec": 0, "nsec": 0}, "log_time": 0, "topic": "/c", "frame_index": 0, "ms": None, "ms_low": None,
      "ms_high": None, "ms_exact": True, "ss": None, "es": None, "memorability": None, "crops_scored": 0,
      "crops_surrogate": 0, "selected": False, "rejected_by": "undecodable", "thresholds": {"mt": 0, "st": 1, "et": 0.25},
-     "detections": 0, "timing_ms": {}, "error": "image does not decode: truncated JPEG"},
+     "detections": 0, "timing_ms": {}, "error": "image does not decode: truncated JPEG", "shared": False,
+     "shared_from": 0},
     {"timestamp": {"sec": 3, "nsec": 4}, "log_time": 9, "topic": "/c", "frame_index": 1, "ms": None, "ms_low": None,
      "ms_high": None, "ms_exact": True, "ss": 0.125, "es": None, "memorability": None, "crops_scored": 0,
      "crops_surrogate": 0, "selected": False, "rejected_by": "staticity", "thresholds": {"mt": 0.5, "st": 0.6, "et": 0.4},
-     "detections": 4, "timing_ms": {"staticity": 2.0}, "error": None},
+     "detections": 4, "timing_ms": {"staticity": 2.0}, "error": None, "shared": False, "shared_from": 1},
     {**RECORD_EMPTY_MATRIX},
 ]
 MATCHES = [
