@@ -8,7 +8,8 @@ choice (:func:`memlog.selection.staged.choose_in_segment`, the same code) with t
 exact (every frame that can win is scored) and shortlists of K = 1, 2, 4, 8 frames per segment
 (the best by SS and ES, spread over the segment), at several keep fractions, and evaluates each
 map under the map-only protocol (R@1, AUC) against uniform and random maps of the same size
-(random: mean and std of 20 seeds, the noise level).
+(random: mean and std of 20 seeds, the noise level). Descriptors are whitened like the map
+step's default (``--no-whiten``: raw).
 
     python benchmarks/shortlist_table.py --scores /path/nordland_summer.scored.mcap
 """
@@ -32,6 +33,7 @@ def main() -> int:
     from memlog.descriptors.extract import describe_log
     from memlog.descriptors.registry import make_describer
     from memlog.descriptors.search import match
+    from memlog.descriptors.whitening import fit_whitening
     from memlog.evaluation.metrics import evaluate_map_only, parse_truth
     from memlog.io import FrameWindow
     from memlog.outputs.annotated import read_scores
@@ -46,6 +48,8 @@ def main() -> int:
     ap.add_argument("--fractions", type=float, nargs="+", default=[0.1, 0.25, 0.5])
     ap.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8])
     ap.add_argument("--descriptor", default="thumbnail")
+    ap.add_argument("--no-whiten", action="store_true",
+                    help="raw descriptors (default: PCA-whitened like `memlog map`, fitted on every summer frame)")
     a = ap.parse_args()
 
     recs = next(iter(read_scores(a.scores).values()))
@@ -53,13 +57,18 @@ def main() -> int:
     d = make_describer(a.descriptor)
     ref, _ = describe_log(SHARED / "nordland_dev_summer.mcap", d, FrameWindow())
     q, _ = describe_log(SHARED / "nordland_dev_winter.mcap", d, FrameWindow())
+    if not a.no_whiten:  # the map step's default: fitted on every reference frame, applied to both drives
+        w = fit_whitening(ref.descriptors)
+        ref_desc, q_desc = w.apply(ref.descriptors), w.apply(q.descriptors)
+    else:
+        ref_desc, q_desc = ref.descriptors, q.descriptors
     row_of = {int(f): r for r, f in enumerate(ref.frame_index)}
     truth_frames = parse_truth(SHARED / "nordland_dev_truth.json")
     truth = [{row_of[j] for j in truth_frames[int(f)] if j in row_of} for f in q.frame_index]
     assert np.array_equal(ref.frame_index, table.index), "descriptor rows must be the scored frames"
 
     def score(mask: np.ndarray) -> tuple[float, float]:
-        mo = evaluate_map_only(match(q.descriptors, ref.descriptors, k=1, ref_mask=mask), truth, mask, ns=(1,))
+        mo = evaluate_map_only(match(q_desc, ref_desc, k=1, ref_mask=mask), truth, mask, ns=(1,))
         return mo.recall_at[1], mo.auc
 
     print("| kept | map | frames | R@1 | AUC | frames scored by ResMem |")

@@ -104,6 +104,8 @@ def test_missing_output_directory_is_refused_everywhere(demo_map: Path, tmp_path
     (["score", str(DEMO), "-o", "OUT.mcap", "--threads", "-1"], "--threads"),
     (["score", str(DEMO), "-o", "OUT.mcap", "--workers", "0"], "--workers"),
     (["score", str(DEMO), "-o", "OUT.mcap", "--mt", "2"], "--mt"),
+    (["score", str(DEMO), "-o", "OUT.mcap", "--duplicates", "near"], "--fast"),
+    (["score", str(DEMO), "-o", "OUT.mcap", "--near-distance", "0"], "--near-distance"),
     (["score", str(DEMO), "-o", "OUT.mcap", "-t", "/no/such/topic"], "/no/such/topic"),
     (["score", str(DEMO), "-o", "OUT.mcap", "--start", "+5", "--end", "+1"], "--start/--end"),
     (["map", str(DEMO), "-o", "OUT.mcap", "--dedup", "-1"], "--dedup"),

@@ -93,3 +93,26 @@ def test_repeated_frames_share_one_scoring_across_workers(tmp_path: Path) -> Non
     frame1 = recs[1]["crops_scored"]  # the two repeats of frame 1 did not go through ResMem again
     assert one.topics["/camera/image/compressed"].crops_run == off.topics["/camera/image/compressed"].crops_run - 2 * frame1
     assert frame1 > 0
+
+
+def test_near_duplicates_are_shared_only_when_asked() -> None:
+    """``duplicates="near"`` (fast mode) treats a re-encoded copy of a frame as the same frame, a
+    different view never; ``identical`` only pixel-identical frames."""
+    import cv2
+    import numpy as np
+
+    with open_log(FIXTURES / "demo.mcap") as log:
+        frames = [f.decode_bgr() for f in log.frames(["/camera/image/compressed"])]
+    a, other = frames[0], frames[4]
+    ok, jpg = cv2.imencode(".jpg", a, [cv2.IMWRITE_JPEG_QUALITY, 80])
+    assert ok
+    recoded = cv2.imdecode(jpg, cv2.IMREAD_COLOR)  # the same view, other pixels (a camera's noise)
+    assert not np.array_equal(recoded, a)
+    from memlog.scoring.scorer import Scorer
+
+    near = Scorer(ScoreConfig(mode="fast", duplicates="near"))
+    same = Scorer(ScoreConfig())
+    assert near.same_frame(near.duplicate_key(a), near.duplicate_key(recoded.copy()))
+    assert not near.same_frame(near.duplicate_key(a), near.duplicate_key(other))
+    assert same.same_frame(same.duplicate_key(a), same.duplicate_key(a.copy()))
+    assert not same.same_frame(same.duplicate_key(a), same.duplicate_key(recoded))

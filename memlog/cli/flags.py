@@ -50,6 +50,14 @@ def unit_interval(text: str) -> float:
     return v
 
 
+def open_unit_interval(text: str) -> float:
+    """A number in (0, 1) (distances that must neither be 0 nor cover everything)."""
+    v = _number(text)
+    if not 0.0 < v < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1), got {text}")
+    return v
+
+
 def fraction(text: str) -> float:
     """A number in (0, 1] (keep fractions)."""
     v = _number(text)
@@ -181,6 +189,13 @@ def add_config_flags(p: argparse.ArgumentParser) -> None:
                    help="with --fast: the int8 estimate decides every frame alone (faster near MT; decisions "
                         "within its error of MT may differ from exact mode)")
     g.add_argument("--normalize", choices=["all", "static"], help="divide MS/ES by all pixels (paper) or static pixels")
+    g.add_argument("--duplicates", choices=["identical", "near", "off"],
+                   help="frames that repeat the previous one share its scoring (the record names the frame it "
+                        "copies): identical = pixel-identical frames only (default, exact); near = also frames "
+                        "within --near-distance on the thumbnail (approximate, only with --fast); off")
+    g.add_argument("--near-distance", type=open_unit_interval, metavar="D",
+                   help="--duplicates near: largest cosine distance between the 64x32 thumbnails of a frame and "
+                        "the previous one (default 0.01)")
     add_max_pixels(g)  # type: ignore[arg-type]
     g.add_argument("--threads", type=nonneg_int, help="ONNX Runtime threads per process (default 0: every core)")
     g.add_argument("--device", choices=["auto", "cpu", "cuda"],
@@ -217,7 +232,8 @@ def add_selection_flags(p: argparse.ArgumentParser) -> None:
                         "(computed from the reference drive's descriptors)")
     g.add_argument("--distinct-weight", type=nonneg_float, metavar="W",
                    help="segment mode: weight of distinctiveness in the combined score (0 = off; with "
-                        "--weights 0,0,0 it selects by distinctiveness alone)")
+                        "weights = [0, 0, 0] in the --config file's [select] table it selects by distinctiveness "
+                        "alone)")
 
 
 # -- builders -------------------------------------------------------------------------------------
@@ -226,7 +242,8 @@ _FLAG_OF = {
     "segment_by": "--segment-by", "dedup": "--dedup", "select mode": "--select", "segment selection mode":
     "--select segment", "stride": "--stride", "jpeg_quality": "--jpeg-quality", "threads": "--threads",
     "image_format": "--image-format", "tolerance": "--tolerance", "seeds": "--seeds", "dt": "--dt",
-    "distinct_weight": "--distinct-weight", "max_frames": "--max-frames", "whiten_dim": "--whiten-dim",
+    "distinct_weight": "--distinct-weight", "near_distance": "--near-distance", "duplicates": "--duplicates",
+    "max_frames": "--max-frames", "whiten_dim": "--whiten-dim",
 }
 
 
@@ -251,7 +268,8 @@ def score_config(args: argparse.Namespace) -> ScoreConfig:
         getattr(args, "preset", None), getattr(args, "config", None), mt=args.mt, st=args.st, et=args.et,
         all_scores=args.all_scores, mode=getattr(args, "mode", None), normalize=args.normalize,
         threads=args.threads, fast_refine=getattr(args, "fast_refine", None), device=getattr(args, "device", None),
-        maps=getattr(args, "maps", None) or None,
+        maps=getattr(args, "maps", None) or None, duplicates=getattr(args, "duplicates", None),
+        near_distance=getattr(args, "near_distance", None),
     )
 
 
