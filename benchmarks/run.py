@@ -185,7 +185,7 @@ def case_map(log: str, variant: str, stride: str, fraction: str, workers: str) -
     from memlog.steps.map import MapConfig, make_map
 
     score_cfg = {"all-scores": ScoreConfig(all_scores=True), "fast-all-scores": ScoreConfig(all_scores=True, mode="fast")}
-    k = int(variant[1:]) if variant.startswith("K") else None
+    k: int | str = int(variant[1:]) if variant.startswith("K") else "all"
     cfg = MapConfig(score=score_cfg.get(variant, ScoreConfig()), select=SelectionConfig(keep_fraction=float(fraction)),
                     descriptor=None, stride=int(stride), workers=int(workers), candidates=k)
     base = _peak_mb()

@@ -137,7 +137,8 @@ def test_staged_map_equals_full_scoring_with_resmem(tmp_path: Path) -> None:
     for sel in (SelectionConfig(keep_fraction=0.5), SelectionConfig(keep_fraction=0.25, dedup=0.05)):
         full = make_map(DEMO, tmp_path / "full.mcap", MapConfig(select=sel, topics=(COMP,), descriptor=None),
                         scores=scored)
-        staged = make_map(DEMO, tmp_path / "staged.mcap", MapConfig(select=sel, topics=(COMP,), descriptor=None))
+        staged = make_map(DEMO, tmp_path / "staged.mcap", MapConfig(select=sel, topics=(COMP,), descriptor=None,
+                                                                    candidates="all"))
         assert _kept(staged) == _kept(full)
         assert staged.crops_run is not None and staged.crops_full is not None
         assert staged.crops_run < staged.crops_full  # ResMem skipped where it could not change the map
@@ -164,7 +165,8 @@ def test_staged_map_equals_full_scoring_on_shared_logs(name: str, stride: int, t
     for i, sel in enumerate(configs):
         full = make_map(log, tmp_path / f"full{i}.mcap", MapConfig(score=ScoreConfig(all_scores=True), select=sel,
                                                                    descriptor=None, stride=stride))
-        staged = make_map(log, tmp_path / f"staged{i}.mcap", MapConfig(select=sel, descriptor=None, stride=stride))
+        staged = make_map(log, tmp_path / f"staged{i}.mcap", MapConfig(select=sel, descriptor=None, stride=stride,
+                                                                       candidates="all"))
         assert _kept(staged) == _kept(full), sel
         assert staged.crops_run is not None and staged.crops_full is not None and full.crops_run is not None
         assert staged.crops_run <= full.crops_run
@@ -176,3 +178,46 @@ def test_staged_table_is_what_full_scoring_selects_from() -> None:
                    ss=np.ones(4), es=np.array([0.3, 0.1, 0.1, 0.3]))
     sel = select_segments(t, SegmentConfig(keep_fraction=0.5, by="count"))
     assert sel.kept_indices.tolist() == [0, 3]
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_shortlist_map_keeps_the_best_candidate_of_each_segment(k: int, tmp_path: Path, stand_in: None) -> None:
+    """``--candidates K``: each segment is cut into K consecutive parts, the frame with the best
+    cheap bound (SS^2 ES: MS <= SS) of each part is a candidate, and the kept frame is the best
+    candidate by the scores full scoring computes."""
+    from memlog.io import FrameWindow
+
+    log = shared("nordland_dev_summer.mcap")
+    sel = SelectionConfig(keep_fraction=0.25)
+    from tests.stand_in import stand_in_scorer
+
+    cfg = ScoreConfig(all_scores=True)
+    score(log, tmp_path / "all.mcap", cfg, FrameWindow(stride=20), scorer=stand_in_scorer(cfg))
+    (topic, recs), = read_scores(tmp_path / "all.mcap").items()
+    every = {r["frame_index"]: r for r in recs}
+    short = make_map(log, tmp_path / "short.mcap", MapConfig(select=sel, descriptor=None, stride=20, candidates=k))
+    s = short.selections[topic]
+    assert s.segment_id is not None and sorted(every) == s.index.tolist()
+
+    def full_value(i: int) -> float:
+        e = every[i]
+        return float(geometric_score(np.array([e["ms"]]), np.array([e["ss"]]), np.array([e["es"]]))[0])
+
+    n_segments = 0
+    for sid in np.unique(s.segment_id):
+        members = s.index[s.segment_id == sid].tolist()
+        cands = []
+        for part in np.array_split(np.array(members), min(k, len(members))):
+            cands.append(max(part.tolist(), key=lambda i: (every[i]["ss"] ** 2 * every[i]["es"], -i)))
+        expect = max(cands, key=lambda i: (full_value(i), -i))
+        kept = [i for i in members if s.keep[s.index.tolist().index(i)]]
+        assert kept == [expect], (sid, members, cands)
+        n_segments += 1
+    assert n_segments > 5 and short.crops_run is not None and short.crops_run <= k * 25 * n_segments
+    recs_map = {r["frame_index"]: r for r in read_scores(tmp_path / "short.mcap")[topic]}
+    for i in s.kept_indices.tolist():  # kept frames carry full scoring's MS
+        assert recs_map[i]["ms_exact"] and recs_map[i]["ms"] == pytest.approx(every[i]["ms"], abs=2e-6)
+    # a shortlist as long as every segment is the exact selection
+    wide = make_map(log, tmp_path / "wide.mcap", MapConfig(select=sel, descriptor=None, stride=20, candidates=1000))
+    exact = make_map(log, tmp_path / "exact.mcap", MapConfig(select=sel, descriptor=None, stride=20, candidates="all"))
+    assert _kept(wide) == _kept(exact)

@@ -20,6 +20,7 @@ from memlog.cli.flags import (
     add_max_pixels,
     add_selection_flags,
     add_window_flags,
+    count_or_all,
     file_section,
     frame_window,
     int_range,
@@ -34,6 +35,7 @@ from memlog.cli.flags import (
 from memlog.configfile import build
 from memlog.errors import ConfigError
 from memlog.progress import info
+from memlog.selection.config import DEFAULT_CANDIDATES
 
 __all__ = ["COMMANDS"]
 
@@ -271,10 +273,11 @@ def _add_map_settings(p: argparse.ArgumentParser) -> None:
                    help="largest whitened dimension (default 512; never more than half the frames)")
     p.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC", help="camera topic(s) to map")
     p.add_argument("--stride", type=positive_int, help="consider every n-th frame of each topic (default 1)")
-    p.add_argument("--candidates", type=positive_int, metavar="K",
+    p.add_argument("--candidates", type=count_or_all, metavar="K|all",
                    help="segment selection: run ResMem on at most K frames per segment, the best by staticity and "
-                        "entropy spread over the segment (approximate; default: exactly the frames that can still "
-                        "win, which keeps the same frames as scoring every frame)")
+                        "entropy spread over the segment (approximate; default %(default_k)s, see the README's "
+                        "defaults table); 'all': exactly the frames that can still win, which keeps the same frames "
+                        "as scoring every frame" % {"default_k": DEFAULT_CANDIDATES})
 
 
 def map_config(args: argparse.Namespace) -> Any:
@@ -297,6 +300,8 @@ def map_config(args: argparse.Namespace) -> Any:
         v = getattr(args, key, None)
         if v is not None:
             flags["descriptors_path" if key == "descriptors" else key] = v
+    if getattr(args, "candidates", None) is not None and select.mode != "segment":
+        raise ConfigError(f"--candidates applies to segment selection only, not --select {select.mode}")
     if args.descriptor is not None:
         if args.descriptor not in ("none", "auto") and args.descriptor not in DESCRIBERS:
             raise ConfigError(f"--descriptor: unknown descriptor {args.descriptor!r} "

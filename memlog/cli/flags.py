@@ -87,6 +87,13 @@ def positive_int(text: str) -> int:
     return v
 
 
+def count_or_all(text: str) -> int | str:
+    """A whole number >= 1, or ``all``."""
+    if text.strip().lower() == "all":
+        return "all"
+    return positive_int(text)
+
+
 def nonneg_int(text: str) -> int:
     v = _integer(text)
     if v < 0:

@@ -44,7 +44,7 @@ from memlog.outputs.maplog import MapLogWriter
 from memlog.progress import info, progress
 from memlog.scoring.config import ScoreConfig
 from memlog.selection import ScoreTable, Selection
-from memlog.selection.config import SelectionConfig
+from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.selection.segment import SegmentConfig, segment_ids
 from memlog.selection.staged import MSState
 from memlog.steps.map_scoring import CheapFrame, SegmentJob, cheap_frames, choose_chunk, staged_record
@@ -74,8 +74,9 @@ class MapConfig:
     every frame of the drive and store it with the map (:mod:`memlog.descriptors.whitening`);
     ``whiten_dim``: its largest dimension (default: the documented rule); ``workers``: processes
     scoring frames; ``candidates``: with segment selection, score at most this many frames per
-    segment with ResMem (the best by their cheap scores, spread over the segment; approximate)
-    instead of exactly the frames that can still win (default); ``stride``: consider every n-th
+    segment with ResMem (the best by their cheap scores, spread over the segment; approximate;
+    default :data:`~memlog.selection.config.DEFAULT_CANDIDATES`), or ``"all"``: exactly the
+    frames that can still win (the same frames as scoring every frame); ``stride``: consider every n-th
     frame of each topic only (frame indices stay positions on the topic).
     """
 
@@ -92,7 +93,7 @@ class MapConfig:
     whiten: bool = True
     whiten_dim: int | None = None
     workers: int = 1
-    candidates: int | None = None
+    candidates: int | Literal["all"] = DEFAULT_CANDIDATES
     stride: int = 1
 
     def __post_init__(self) -> None:
@@ -101,7 +102,10 @@ class MapConfig:
                               f"got {self.descriptor!r}")
         if self.descriptor_dtype not in ("float32", "float16"):
             raise ConfigError(f"descriptor_dtype must be float32 or float16, got {self.descriptor_dtype!r}")
-        for name, low in (("workers", 1), ("candidates", 1), ("stride", 1), ("whiten_dim", 1)):
+        if self.candidates != "all" and (isinstance(self.candidates, bool) or not isinstance(self.candidates, int)
+                                         or self.candidates < 1):
+            raise ConfigError(f"candidates must be an integer >= 1 or 'all', got {self.candidates!r}")
+        for name, low in (("workers", 1), ("stride", 1), ("whiten_dim", 1)):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < low):
                 raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
@@ -329,7 +333,7 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
     batches = [jobs[i:i + group] for i in range(0, len(jobs), group)]
     wcfg = score_cfg.replace(threads=job_threads(ex, score_cfg.threads))
     args = ((log, score_cfg if isinstance(ex, InProcess) else wcfg, window, [j for _, _, j in b], sel_cfg.weights,
-             sel_cfg.min_ms, cfg.candidates) for b in batches)
+             sel_cfg.min_ms, None if cfg.candidates == "all" else cfg.candidates) for b in batches)
     results = progress(ex.map_ordered(choose_chunk, args), total=len(batches), desc="memorability", unit="job")
     for b, res in zip(batches, results):
         for (t, _rows, job), r in zip(b, res):
