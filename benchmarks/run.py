@@ -7,6 +7,7 @@
     python benchmarks/run.py descriptors     # descriptor extraction and matching
     python benchmarks/run.py search          # localization against a 100,000-frame map (search_bench.py)
     python benchmarks/run.py map             # memlog map end to end: all scores vs staged vs shortlists, workers
+    python benchmarks/run.py threads         # fp32 ResMem per crop: 1 vs 2 threads vs two 1-thread processes
 
 Each case runs in a fresh subprocess so its peak RSS (ru_maxrss) is its own.
 """
@@ -302,6 +303,39 @@ def bench_score(n: int) -> None:
                              "selected (paper-literal)"]))
 
 
+def case_resmem(threads: str, crops: str) -> dict[str, Any]:
+    """Seconds per crop of the fp32 ResMem session with ``threads`` threads, one crop per call."""
+    import numpy as np
+
+    from memlog.models.resmem import resmem_onnx_path, run_crops
+    from memlog.models.runtime import make_session
+
+    s = make_session(resmem_onnx_path(), threads=int(threads), device="cpu")
+    x = np.random.default_rng(0).random((1, 3, 227, 227), dtype=np.float32)
+    run_crops(s, x)  # warm-up
+    t0 = time.perf_counter()
+    for _ in range(int(crops)):
+        run_crops(s, x)
+    return {"s_per_crop": (time.perf_counter() - t0) / int(crops), "peak_mb": _peak_mb()}
+
+
+def bench_threads(crops: int = 50) -> None:
+    """Threads against processes per core: one session with 1 and with 2 threads, then two
+    1-thread sessions in two processes at once."""
+    one = _case("resmem", "1", str(crops))
+    two = _case("resmem", "2", str(crops))
+    procs = [subprocess.Popen([sys.executable, __file__, "--case", "resmem", "1", str(crops)], stdout=subprocess.PIPE,
+                              text=True) for _ in range(2)]
+    par = [json.loads(p.communicate()[0].strip().splitlines()[-1])["s_per_crop"] for p in procs]
+    together = 1.0 / sum(1.0 / v for v in par)
+    rows = [["1 process, 1 thread", f"{one['s_per_crop']:.3f}", "1.00x"],
+            ["1 process, 2 threads", f"{two['s_per_crop']:.3f}", f"{one['s_per_crop'] / two['s_per_crop']:.2f}x"],
+            ["2 processes, 1 thread each (together)", f"{together:.3f} ({par[0]:.3f}, {par[1]:.3f} each)",
+             f"{one['s_per_crop'] / together:.2f}x"]]
+    print(f"\n### fp32 ResMem, one 227x227 crop per call ({crops} calls)\n")
+    print(table(rows, ["layout", "s per crop", "vs 1 thread"]))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", nargs="*", default=["io", "score", "descriptors"])
@@ -321,6 +355,8 @@ def main() -> int:
         bench_descriptors()
     if "map" in a.what:  # not in the default set: about an hour on two cores
         bench_map("nordland_dev_summer.mcap", a.map_stride, 0.1)
+    if "threads" in a.what:
+        bench_threads()
     if "search" in a.what:  # not in the default set: it builds a ~1.1 GB map in /tmp once
         subprocess.run([sys.executable, str(Path(__file__).with_name("search_bench.py"))], check=True)
     return 0

@@ -21,7 +21,6 @@ from memlog.outputs.descriptor_table import write_descriptors
 from tests.conftest import shared
 
 # FAISS is part of the test extra: the approximate index is always tested (no skip)
-needs_faiss = pytest.mark.usefixtures()
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +37,6 @@ def _recall(found: np.ndarray, exact: np.ndarray) -> tuple[float, float]:
     return float(np.mean(found[:, 0] == exact[:, 0])), float(r10)
 
 
-@needs_faiss
 def test_ivf_agrees_with_exact_search_on_nordland(nordland: tuple[DescriptorTable, DescriptorTable]) -> None:
     summer, winter = nordland
     db = Database.of(summer.descriptors)
@@ -63,7 +61,6 @@ def test_ivf_agrees_with_exact_search_on_nordland(nordland: tuple[DescriptorTabl
     assert few_r1 < r1
 
 
-@needs_faiss
 def test_ivf_small_maps_and_masks(nordland: tuple[DescriptorTable, DescriptorTable]) -> None:
     summer, winter = nordland
     mask = np.zeros(800, bool)
@@ -115,7 +112,6 @@ def test_cli_without_faiss_is_a_usage_error(tmp_path: Path, monkeypatch: pytest.
     assert list(tmp_path.iterdir()) == []
 
 
-@needs_faiss
 def test_localize_ivf_end_to_end(nordland: tuple[DescriptorTable, DescriptorTable], tmp_path: Path) -> None:
     from memlog.steps.localize import LocalizeConfig, localize
 

@@ -19,7 +19,7 @@ from memlog.selection.table import ScoreTable, Selection
 __all__ = ["SelectionConfig"]
 
 
-DEFAULT_CANDIDATES: int | Literal["all"] = 2
+DEFAULT_CANDIDATES: int | Literal["all"] = 1
 """``memlog map --candidates``: segment selection runs ResMem on at most this many frames per
 segment (``"all"``: exactly the frames that can still win). Chosen on the Nordland pair with
 ``benchmarks/shortlist_table.py`` and ``benchmarks/run.py map`` (README, defaults table)."""
