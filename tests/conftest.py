@@ -91,3 +91,15 @@ def copy_of(tmp_path: Path):  # type: ignore[no-untyped-def]
         return dst
 
     return _copy
+
+
+def repeating_log(path: Path) -> None:
+    """demo's compressed frames with a stop (frame 1 repeated 3x) and a loop (frames 0-1 again)."""
+    from memlog.io import McapLogWriter, open_log
+
+    with open_log(FIXTURES / "demo.mcap") as log:
+        msgs = list(log.messages(["/camera/image/compressed"]))
+    order = [0, 1, 1, 1, 2, 3, 0, 1]
+    with McapLogWriter(path, profile="ros2") as w:
+        for k, i in enumerate(order):
+            w.write(w.channel_for(msgs[i].channel), 1_700_000_000_000_000_000 + k * 100_000_000, msgs[i].data)

@@ -15,7 +15,7 @@ from memlog.io.positions import read_track
 from memlog.outputs.annotated import read_scores
 from memlog.selection.config import SelectionConfig
 from memlog.steps.map import MapConfig, make_map
-from tests.conftest import FIXTURES
+from tests.conftest import FIXTURES, repeating_log
 
 DEMO = FIXTURES / "demo.mcap"
 COMP = "/camera/image/compressed"
@@ -80,19 +80,9 @@ def test_segments_by_view_change_and_gap(tmp_path: Path) -> None:
     assert [g.start_index for g in sel.gaps] == [2]  # the failing place is reported as a gap
 
 
-def _repeating_log(path: Path) -> None:
-    """demo's compressed frames with a stop (frame 1 repeated 3x) and a loop (frames 0-1 again)."""
-    with open_log(DEMO) as log:
-        msgs = list(log.messages([COMP]))
-    order = [0, 1, 1, 1, 2, 3, 0, 1]
-    with McapLogWriter(path, profile="ros2") as w:
-        for k, i in enumerate(order):
-            w.write(w.channel_for(msgs[i].channel), 1_700_000_000_000_000_000 + k * 100_000_000, msgs[i].data)
-
-
 def test_redundancy_filter_drops_stops_and_loops(tmp_path: Path) -> None:
     log = tmp_path / "loop.mcap"
-    _repeating_log(log)
+    repeating_log(log)
     recs = _records(log, COMP, [0.9] * 8)
     cfg = MapConfig(select=SelectionConfig(mode="paper", mt=0.5, st=0.5, et=0.4, dedup=0.05), topics=(COMP,),
                     descriptor=None)

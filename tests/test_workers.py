@@ -11,7 +11,7 @@ from memlog.scoring.config import ScoreConfig
 from memlog.steps.parallel import InProcess, Processes, threads_per_worker
 from memlog.steps.score import plan_chunks, score
 from memlog.io.open import open_log
-from tests.conftest import FIXTURES
+from tests.conftest import FIXTURES, repeating_log
 from tests.same_outputs import normalised_scored as _normalised
 
 
@@ -61,23 +61,11 @@ def test_executors_keep_job_order() -> None:
     assert threads_per_worker(2, 0) >= 1 and threads_per_worker(4, 3) == 3
 
 
-def _repeating_log(path: Path) -> None:
-    """demo's compressed frames with a stop (frame 1 repeated 3x) and a loop (frames 0-1 again)."""
-    from memlog.io import McapLogWriter
-
-    with open_log(FIXTURES / "demo.mcap") as log:
-        msgs = list(log.messages(["/camera/image/compressed"]))
-    order = [0, 1, 1, 1, 2, 3, 0, 1]
-    with McapLogWriter(path, profile="ros2") as w:
-        for k, i in enumerate(order):
-            w.write(w.channel_for(msgs[i].channel), 1_700_000_000_000_000_000 + k * 100_000_000, msgs[i].data)
-
-
 def test_repeated_frames_share_one_scoring_across_workers(tmp_path: Path) -> None:
     from memlog.outputs.annotated import read_scores
 
     log = tmp_path / "stop.mcap"
-    _repeating_log(log)
+    repeating_log(log)
     cfg = ScoreConfig(all_scores=True)
     one = score(log, tmp_path / "one.mcap", cfg)
     score(log, tmp_path / "two.mcap", cfg, workers=2, chunk_frames=2)  # a chunk starts inside the stop
