@@ -175,7 +175,7 @@ class ReferenceDescribing:
                 if keep:  # a frame that is not kept was reported by the scoring pass already
                     self.reader.decode_error(frame, exc)
                 return
-        self._pending.append((_stripped(frame) if keep else frame, row if row is not None else img, keep))
+        self._pending.append((frame.stripped() if keep else frame, row if row is not None else img, keep))
         if len(self._pending) >= self.batch:
             self.flush()
 
@@ -206,13 +206,6 @@ class ReferenceDescribing:
         return self.frames, desc, self.whitening
 
 
-def _stripped(frame: Frame) -> Frame:
-    """``frame`` without its pixels (kept for the descriptor table's rows)."""
-    import dataclasses
-
-    from memlog.io.types import ImagePayload
-
-    return dataclasses.replace(frame, payload=ImagePayload(frame.payload.kind, frame.payload.encoding, b""))
 
 
 def drive_distinctiveness(

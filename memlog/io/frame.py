@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -37,3 +37,8 @@ class Frame:
     def decode_gray(self) -> npt.NDArray[np.uint8]:
         """Decode the payload to an HxW uint8 grey array (see :mod:`memlog.io.image`)."""
         return decode_gray(self.payload)
+
+    def stripped(self) -> Frame:
+        """This frame without its pixels (payload data emptied; kind and encoding kept): what
+        results carry once a frame is scored or described."""
+        return replace(self, payload=ImagePayload(self.payload.kind, self.payload.encoding, b""))

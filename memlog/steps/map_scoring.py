@@ -12,8 +12,6 @@ what was computed: ``ms`` null with bounds ``ms_low``/``ms_high`` where MS was n
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -28,7 +26,6 @@ from memlog.io.base import FrameError, FrameWindow, LogReader
 from memlog.io.frame import Frame
 from memlog.io.open import open_log
 from memlog.io.records import ReadReport
-from memlog.io.types import ImagePayload
 from memlog.models.resmem import crop_weights
 from memlog.outputs.annotated import scores_message
 from memlog.scoring.config import ScoreConfig
@@ -54,12 +51,7 @@ class CheapFrame:
     crops_needed: int = 0  # crops of non-zero weight: what scoring it fully would run
     timing_ms: dict[str, float] = field(default_factory=dict)
     thumb: npt.NDArray[np.float32] | None = None
-    pixels_sha: str = ""
     error: str | None = None
-
-
-def _stripped(frame: Frame) -> Frame:
-    return dataclasses.replace(frame, payload=ImagePayload(frame.payload.kind, frame.payload.encoding, b""))
 
 
 def _scorer_for(config: ScoreConfig) -> Scorer:
@@ -86,13 +78,12 @@ def cheap_chunk(log: str, config: ScoreConfig, window: FrameWindow, chunk: Chunk
             except ImageDecodeError as exc:
                 err = reader.decode_error(f, exc)
                 errors.append(err)
-                out.append(CheapFrame(_stripped(f), error=err.reason))
+                out.append(CheapFrame(f.stripped(), error=err.reason))
                 continue
             dt = (time.perf_counter() - t0) * 1e3
             c = scorer.cheap(bgr, keep_maps=False)
-            cf = CheapFrame(_stripped(f), c.ss, c.es, c.detections, c.width, c.height,
-                            int(np.count_nonzero(crop_weights(c.static_map) > 0)), {"decode": dt, **c.timing_ms},
-                            pixels_sha=hashlib.blake2b(bgr.tobytes(), digest_size=16).hexdigest())
+            cf = CheapFrame(f.stripped(), c.ss, c.es, c.detections, c.width, c.height,
+                            int(np.count_nonzero(crop_weights(c.static_map) > 0)), {"decode": dt, **c.timing_ms})
             if thumb is not None:
                 cf.thumb = thumb.describe([bgr])[0]
             out.append(cf)

@@ -19,7 +19,6 @@ the run: it is not damage of the input.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import platform
@@ -37,7 +36,6 @@ from memlog.io.frame import Frame
 from memlog.io.identity import log_identity
 from memlog.io.open import open_log
 from memlog.io.records import ReadReport
-from memlog.io.types import ImagePayload
 from memlog.models.runtime import choose_providers
 from memlog.outputs.annotated import AnnotatedLogWriter
 from memlog.progress import progress
@@ -176,10 +174,6 @@ class ScoredChunk:
     provenance: dict[str, Any] = field(default_factory=dict)
 
 
-def _stripped(frame: Frame) -> Frame:
-    return dataclasses.replace(frame, payload=ImagePayload(frame.payload.kind, frame.payload.encoding, b""))
-
-
 def plan_chunks(reader: LogReader, window: FrameWindow, size: int) -> list[Chunk]:
     """The frames of ``window`` cut into chunks of ``size`` frames, in log-time order: from the
     index of message times when the log has one (nothing read), else from one pass over the camera
@@ -267,7 +261,7 @@ def score_chunk(log: str, config: ScoreConfig, window: FrameWindow, chunk: Chunk
         errors: list[FrameError] = []
         w = window if chunk is None else FrameWindow(window.topics, chunk.start_ns, chunk.end_ns, window.stride)
         seed = _seed(reader, scorer, chunk) if chunk is not None and config.duplicates != "off" else None
-        out = [(_stripped(f), s, e) for f, s, e in
+        out = [(f.stripped(), s, e) for f, s, e in
                iter_scores(reader, scorer, w, errors=errors, indices=None if chunk is None else chunk.indices,
                            seed=seed)]
         return ScoredChunk(out, reader.report, errors, scorer.provenance())
@@ -307,7 +301,7 @@ def scored_frames(
         for f, s, e in iter_scores(reader, sc, window, errors=errors):
             if isinstance(s, SharedScore):  # one stream resolves every repeat; cannot happen
                 raise AssertionError("unresolved shared score")
-            yield ScoredFrame(_stripped(f), s, e)
+            yield ScoredFrame(f.stripped(), s, e)
         return
     wcfg = config.replace(threads=job_threads(executor, config.threads))
     chunks = plan_chunks(reader, window, chunk_frames)
