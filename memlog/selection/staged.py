@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -59,8 +59,6 @@ class MSState:
     exact: bool = False
     m: NDArray[Any] | None = None
     crops_run: int = 0
-    scored: bool = False  # the CNN looked at this frame at all
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 #: ``score(row, threshold, known)``: score row's MS, stopping once MS >= threshold is decided
@@ -164,7 +162,6 @@ def choose_in_segment(
                 need = max(need, to_beat)
         st = states[r]
         res = score(r, need if need > 0 else None, None)
-        st.scored = True
         st.crops_run += res.crops_run
         st.m = res.m
         if not res.exact:
