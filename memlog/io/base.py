@@ -375,6 +375,14 @@ class LogReader(ABC):
             msgtype=ch.msgtype,
         )
 
+    def absorb(self, report: ReadReport, errors: Iterable[FrameError]) -> None:
+        """Frame-level damage that a worker found reading this same log (its ``report`` and frame
+        ``errors``): counted in this reader's report and warned as if this reader had found it."""
+        self.report.bad_messages += report.bad_messages
+        self.report.undecodable_frames += report.undecodable_frames
+        for err in errors:
+            self.warn(str(err))
+
     def _frame_error(self, m: RawMessage, idx: int, reason: str, errors: list[FrameError] | None) -> None:
         err = FrameError(self.path, m.channel.topic, idx, m.log_time, reason)
         self.report.bad_messages += 1

@@ -101,10 +101,7 @@ def cheap_frames(log: str, reader: LogReader, config: ScoreConfig, window: Frame
     wcfg = config.replace(threads=job_threads(executor, config.threads))
     for frames, rep, errors in executor.map_ordered(
             cheap_chunk, ((log, wcfg, window, c, thumbs) for c in plan_chunks(reader, window, chunk_frames))):
-        reader.report.bad_messages += rep.bad_messages
-        reader.report.undecodable_frames += rep.undecodable_frames
-        for e in errors:
-            reader.warn(str(e))
+        reader.absorb(rep, errors)
         yield from frames
 
 

@@ -307,11 +307,7 @@ def scored_frames(
     chunks = plan_chunks(reader, window, chunk_frames)
     last: dict[str, tuple[int, FrameScore]] = {}
     for res in executor.map_ordered(score_chunk, ((str(log), wcfg, window, c) for c in chunks)):
-        rep = reader.report
-        rep.bad_messages += res.report.bad_messages
-        rep.undecodable_frames += res.report.undecodable_frames
-        for ferr in res.errors:
-            reader.warn(str(ferr))
+        reader.absorb(res.report, res.errors)
         if errors is not None:
             errors.extend(res.errors)
         if provenance is not None and not provenance:
