@@ -21,7 +21,7 @@ from typing import Any, TypeVar
 
 from memlog.errors import ConfigError
 
-__all__ = ["read_config_file", "config_section", "build", "SECTIONS"]
+__all__ = ["read_config_file", "config_section", "build", "check_ints", "SECTIONS"]
 
 T = TypeVar("T")
 
@@ -152,6 +152,17 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             raise ConfigError(f"{where}: expected a string, got {value!r} ({type(value).__name__})")
         return value
     return value
+
+
+def check_ints(config: Any, limits: Mapping[str, int], *, optional: bool = False) -> None:
+    """The config dataclasses' integer check: ConfigError unless each field named in ``limits``
+    is an integer (not a bool) at least its limit; with ``optional``, None passes too."""
+    for name, low in limits.items():
+        v = getattr(config, name)
+        if v is None and optional:
+            continue
+        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+            raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
 
 
 def build(cls: type[T], values: Mapping[str, Any], where: str = "config", base: T | None = None) -> T:

@@ -24,6 +24,7 @@ from types import ModuleType
 import numpy as np
 import numpy.typing as npt
 
+from memlog.configfile import check_ints
 from memlog.descriptors.search import F32, I64, Database, _best, _empty, _queries, _rescore
 from memlog.errors import ConfigError, DescriptorError
 from memlog.progress import info
@@ -71,10 +72,7 @@ class SearchConfig:
     def __post_init__(self) -> None:
         if self.method not in SEARCH_METHODS:
             raise ConfigError(f"search must be one of {', '.join(SEARCH_METHODS)}, got {self.method!r}")
-        for name in ("nlist", "nprobe", "rerank"):
-            v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-                raise ConfigError(f"{name} must be an integer >= 1, got {v!r}")
+        check_ints(self, {"nlist": 1, "nprobe": 1, "rerank": 1}, optional=True)
         if self.method == "exact" and (self.nlist or self.nprobe or self.rerank):
             raise ConfigError("nlist/nprobe/rerank set the approximate index; they do not apply to exact search")
 

@@ -12,7 +12,7 @@ import os
 from dataclasses import asdict, dataclass, replace
 from typing import Any, Literal
 
-from memlog.configfile import build, config_section, read_config_file
+from memlog.configfile import build, check_ints, config_section, read_config_file
 from memlog.errors import ConfigError
 
 __all__ = ["ScoreConfig", "CONFIGS", "load_config", "config_from_json", "DYNAMIC_CLASS_NAMES"]
@@ -78,10 +78,7 @@ class ScoreConfig:
                               "only with --fast; exact mode shares pixel-identical frames only")
         if not 0.0 < self.near_distance < 1.0:
             raise ConfigError(f"near_distance must be in (0, 1), got {self.near_distance!r}")
-        for name, low in (("threads", 0), ("crop_batch", 1), ("entropy_radius", 0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
+        check_ints(self, {"threads": 0, "crop_batch": 1, "entropy_radius": 0})
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

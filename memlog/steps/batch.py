@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from memlog._version import __version__
+from memlog.configfile import check_ints
 from memlog.errors import ConfigError, MemlogError
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow
@@ -84,11 +85,8 @@ class BatchConfig:
     logs_at_once: int = 1
 
     def __post_init__(self) -> None:
-        for name, low in (("workers", 1), ("actors_per_gpu", 1), ("max_retries", 0), ("chunk_frames", 1),
-                          ("logs_at_once", 1)):
-            v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < low):
-                raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
+        check_ints(self, {"workers": 1, "actors_per_gpu": 1, "max_retries": 0, "chunk_frames": 1, "logs_at_once": 1},
+                   optional=True)
         if self.ray_address is not None and not self.ray:
             raise ConfigError("ray_address is given but ray is off (use --ray ADDRESS)")
         if self.map.descriptors_path is not None:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from memlog.configfile import check_ints
 from memlog.errors import ConfigError
 from memlog.io.atomic import check_output
 from memlog.io.mcap import McapLogWriter, copy_log
@@ -34,8 +35,7 @@ class ConvertConfig:
     def __post_init__(self) -> None:
         if self.compression not in ("zstd", "lz4", "none"):
             raise ConfigError(f"compression must be zstd, lz4 or none, got {self.compression!r}")
-        if isinstance(self.chunk_size, bool) or not isinstance(self.chunk_size, int) or self.chunk_size < 1024:
-            raise ConfigError(f"chunk_size must be an integer >= 1024, got {self.chunk_size!r}")
+        check_ints(self, {"chunk_size": 1024})
 
 
 @dataclass

@@ -32,13 +32,14 @@ from typing import Any, Literal
 import numpy as np
 
 from memlog._version import __version__
+from memlog.configfile import check_ints
 from memlog.descriptors.auto import AUTO, resolve_descriptor
 from memlog.descriptors.base import Describer, check_compatible
 from memlog.descriptors.extract import describe_log
-from memlog.descriptors.whitening import Whitening
 from memlog.descriptors.registry import DESCRIBERS, make_describer
 from memlog.descriptors.search import match, time_per_query
 from memlog.descriptors.table import DescriptorTable
+from memlog.descriptors.whitening import Whitening
 from memlog.errors import ConfigError, DescriptorError, EvaluationError, MemlogError
 from memlog.evaluation.metrics import (
     PAPER_READINGS,
@@ -105,17 +106,12 @@ class EvaluateConfig:
         if bad or not names or len(set(names)) != len(names):
             raise ConfigError(f"descriptor must be auto or one of {', '.join(sorted(DESCRIBERS))} (several: comma-"
                               f"separated, each once), got {self.descriptor!r}")
-        mf = self.max_frames
-        if mf is not None and (isinstance(mf, bool) or not isinstance(mf, int) or mf < 1):
-            raise ConfigError(f"max_frames must be an integer >= 1, got {mf!r}")
+        check_ints(self, {"max_frames": 1}, optional=True)
         if self.window.topics is not None or (self.query_window is not None and self.query_window.topics):
             raise ConfigError("window: give topics with reference_topic / query_topic")
         if not (isinstance(self.tol_m, (int, float)) and np.isfinite(self.tol_m) and self.tol_m >= 0):
             raise ConfigError(f"tolerance must be a number >= 0 (metres), got {self.tol_m!r}")
-        for name, low in (("k", 1), ("seeds", 1)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
+        check_ints(self, {"k": 1, "seeds": 1})
         if self.paper_discarded not in PAPER_READINGS:
             raise ConfigError(f"paper_discarded must be one of {', '.join(PAPER_READINGS)}, got "
                               f"{self.paper_discarded!r}")

@@ -25,10 +25,11 @@ from typing import Any
 
 import numpy as np
 
+from memlog.configfile import check_ints
+from memlog.descriptors.approx import IVFIndex, SearchConfig, choose
 from memlog.descriptors.base import Describer, check_compatible
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import make_describer
-from memlog.descriptors.approx import IVFIndex, SearchConfig, choose
 from memlog.descriptors.search import Database, QueryTiming, confidence, match, time_per_query
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import WhitenedDescriber
@@ -55,8 +56,7 @@ class LocalizeConfig:
     time_search: bool = False
 
     def __post_init__(self) -> None:
-        if isinstance(self.k, bool) or not isinstance(self.k, int) or self.k < 1:
-            raise ConfigError(f"k must be an integer >= 1, got {self.k!r}")
+        check_ints(self, {"k": 1})
         if not isinstance(self.search, SearchConfig):
             raise ConfigError(f"search must be a SearchConfig, got {self.search!r}")
 

@@ -25,6 +25,7 @@ from typing import Any, Literal
 import numpy as np
 
 from memlog._version import __version__
+from memlog.configfile import check_ints
 from memlog.descriptors.auto import AUTO, DescriptorChoice, resolve_descriptor
 from memlog.descriptors.extract import ReferenceDescribing, build_table, drive_distinctiveness
 from memlog.descriptors.registry import DESCRIBERS, make_describer
@@ -105,10 +106,7 @@ class MapConfig:
         if self.candidates != "all" and (isinstance(self.candidates, bool) or not isinstance(self.candidates, int)
                                          or self.candidates < 1):
             raise ConfigError(f"candidates must be an integer >= 1 or 'all', got {self.candidates!r}")
-        for name, low in (("workers", 1), ("stride", 1), ("whiten_dim", 1)):
-            v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < low):
-                raise ConfigError(f"{name} must be an integer >= {low}, got {v!r}")
+        check_ints(self, {"workers": 1, "stride": 1, "whiten_dim": 1}, optional=True)
         if self.image_format not in ("jpeg", "png"):
             raise ConfigError(f"image_format must be jpeg or png, got {self.image_format!r}")
         q = self.jpeg_quality
