@@ -21,6 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import ray  # in the test extra: the Ray tests always run (no skip)
 
 from memlog.cli.app import main
 from memlog.steps.batch import BatchConfig, batch
@@ -30,7 +31,6 @@ from tests.same_outputs import assert_same_outputs, reference
 from tests.conftest import FIXTURES, ROOT, shared
 from tests.stand_in import SWITCH_ENV
 
-ray = pytest.importorskip("ray")
 
 LOGS = [FIXTURES / "ros2_mcap", FIXTURES / "ros1.bag", FIXTURES / "ros2_sqlite"]
 CFG = BatchConfig(ray=True, workers=2, chunk_frames=1)  # one frame per job: every log spreads over both actors

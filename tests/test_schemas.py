@@ -19,7 +19,7 @@ import pytest
 from google.protobuf import descriptor_pb2
 
 from memlog.outputs.schemas import FOXGLOVE_DIR, MESSAGES, generated_files, proto_descriptor_set, proto_file
-from tests.conftest import ROOT
+from tests.conftest import ROOT, skip_or_fail
 
 SCHEMAS_DIR = ROOT / "schemas"
 
@@ -98,7 +98,7 @@ def _protoc() -> list[str] | None:
 def test_memlog_proto_descriptor_is_what_protoc_makes(name: str, tmp_path: Path) -> None:
     protoc = _protoc()
     if protoc is None:
-        pytest.skip("protoc is not installed (apt install protobuf-compiler or pip install grpcio-tools)")
+        skip_or_fail("protoc is not installed (apt install protobuf-compiler or pip install grpcio-tools)")
     (tmp_path / "memlog").mkdir()
     (tmp_path / "memlog" / f"{name}.proto").write_text(proto_file(name))
     out = tmp_path / "out.fds"
@@ -158,11 +158,11 @@ def test_vendored_foxglove_files_are_what_the_script_generates() -> None:
     if not local and shutil.which("npm") is None:
         missing.append("npm")
     if missing:
-        pytest.skip(f"{', '.join(missing)} not installed: only the recorded hashes are checked")
+        skip_or_fail(f"{', '.join(missing)} not installed: only the recorded hashes are checked")
     with tempfile.TemporaryDirectory() as tmp:
         try:
             tarball = Path(local) if local else tools.fetch_tarball(Path(tmp))
         except tools.GenerateError as exc:
-            pytest.skip(f"cannot fetch the tarball ({exc}); set MEMLOG_FOXGLOVE_TARBALL to a local copy")
+            skip_or_fail(f"cannot fetch the tarball ({exc}); set MEMLOG_FOXGLOVE_TARBALL to a local copy")
         files = tools.generate(tarball)
     assert tools.differences(files) == []
