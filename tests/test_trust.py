@@ -129,6 +129,22 @@ def test_mistakes_are_usage_errors_before_any_work(args: list[str], flag: str, t
     assert not any(tmp_path.iterdir()), "nothing is written"
 
 
+def test_logs_with_the_same_name_are_refused_before_any_work(tmp_path: Path) -> None:
+    """Two logs named alike would write the same outputs: `score` with several logs and `batch`
+    refuse them, naming the output directory and the name."""
+    other = tmp_path / "elsewhere"
+    other.mkdir()
+    shutil.copy(DEMO, other / "demo.mcap")
+    out = tmp_path / "out"
+    out.mkdir()
+    for args in (["score", str(DEMO), str(other / "demo.mcap"), "-o", str(out)],
+                 ["batch", str(DEMO), str(other / "demo.mcap"), "-o", str(out)]):
+        r = _cli(*args)
+        assert r.returncode == 2 and f"-o {out}: several logs are named demo" in r.stderr, (args, r.stderr)
+        assert "Traceback" not in r.stderr
+    assert not any(out.iterdir())
+
+
 def test_truth_that_does_not_fit_the_logs_is_refused_before_scoring(tmp_path: Path) -> None:
     for matches, why in (([[0]] * 3, "entries but the query topic has 8 frames"),
                          ([[0]] * 7 + [[99]], "names reference frame 99"),

@@ -186,13 +186,9 @@ def _score_outputs(logs: list[str], output: str) -> list[str]:
     out_dir = Path(output)
     if not out_dir.is_dir():
         raise ConfigError(f"-o {output}: with several logs, -o must be an existing directory")
-    from memlog.io.identity import log_name
+    from memlog.io.identity import log_names
 
-    names = [log_name(log) for log in logs]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise ConfigError(f"-o {output}: several logs are named {', '.join(dup)}; their outputs would collide "
-                          "(score them into different directories)")
+    names = log_names(logs, output, "score them into different directories")
     return [str(out_dir / f"{n}.scored.mcap") for n in names]
 
 

@@ -9,10 +9,13 @@ the cache.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["log_identity", "same_identity", "log_name"]
+from memlog.errors import ConfigError
+
+__all__ = ["log_identity", "same_identity", "log_name", "log_names"]
 
 
 def log_identity(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -42,3 +45,14 @@ def log_name(path: str | os.PathLike[str]) -> str:
     for suffix in (".mcap", ".bag", ".db3"):
         name = name.removesuffix(suffix)
     return name
+
+
+def log_names(logs: Sequence[str | os.PathLike[str]], output: str | os.PathLike[str], advice: str) -> list[str]:
+    """:func:`log_name` of each log; ConfigError (naming the ``-o`` directory, with ``advice``)
+    when two logs share a name, so their outputs would collide."""
+    names = [log_name(log) for log in logs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"-o {output}: several logs are named {', '.join(dup)}; their outputs would collide "
+                          f"({advice})")
+    return names

@@ -38,7 +38,7 @@ from memlog.configfile import check_ints
 from memlog.errors import ConfigError, MemlogError
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow
-from memlog.io.identity import log_identity, log_name
+from memlog.io.identity import log_identity, log_names
 from memlog.io.open import open_log
 from memlog.io.records import ReadReport
 from memlog.models.runtime import choose_providers
@@ -294,11 +294,7 @@ def _locked(outdir: Path) -> Iterator[None]:
 def _prepare(logs: Sequence[str], outdir: Path) -> list[tuple[str, str, dict[str, str]]]:
     """(log, name, outputs) per log, after creating ``outdir``; usage errors (names that collide,
     an output that is an input) before any work."""
-    names = [log_name(log) for log in logs]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise ConfigError(f"-o {outdir}: several logs are named {', '.join(dup)}; their outputs would collide "
-                          "(run them into different directories)")
+    names = log_names(logs, outdir, "run them into different directories")
     outdir.mkdir(exist_ok=True)
     items = []
     for log, name in zip(logs, names):
