@@ -40,13 +40,16 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from memlog._version import __version__
-from memlog.descriptors.base import DescriptorMeta
+from memlog.descriptors.base import DescriptorMeta, check_compatible
 from memlog.descriptors.table import POSITION_COLUMNS, SCORE_COLUMNS, DescriptorTable
 from memlog.descriptors.whitening import Whitening
 from memlog.errors import DescriptorError
 from memlog.io.atomic import atomic_output
+from memlog.io.base import FrameWindow
+from memlog.io.identity import same_identity
+from memlog.progress import info
 
-__all__ = ["write_descriptors", "read_descriptors", "stored_dtype", "DTYPES"]
+__all__ = ["write_descriptors", "read_descriptors", "read_cached", "stored_dtype", "DTYPES"]
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -287,3 +290,28 @@ def _strings(col: pa.ChunkedArray, path: Path) -> list[str]:
         else:
             out.extend(str(t) for t in chunk.to_pylist())
     return out
+
+
+def read_cached(path: str | os.PathLike[str], log: str | os.PathLike[str], meta: DescriptorMeta,
+                window: FrameWindow) -> DescriptorTable | None:
+    """The descriptor table cached at ``path`` when ``describe_log`` made it from ``log`` (same
+    identity: path, size, modification time), with ``window`` and a describer compatible with
+    ``meta``; else None, saying why (``window.topics`` None: the topics the table was made from)."""
+    p = Path(path)
+    if not p.is_file():
+        return None
+    try:
+        t = read_descriptors(p)
+        check_compatible(meta, t.meta)
+    except DescriptorError as exc:
+        info(f"memlog: not reusing {p}: {exc}")
+        return None
+    if not same_identity(t.extra.get("log_identity"), log):
+        info(f"memlog: not reusing {p}: it was made from another log (or {log} changed)")
+        return None
+    topics = window.topics if window.topics is not None else tuple(t.extra.get("window", {}).get("topics") or ())
+    if t.extra.get("window") != FrameWindow(tuple(topics), window.start_ns, window.end_ns, window.stride).to_dict():
+        info(f"memlog: not reusing {p}: it was made with other topics, time window or stride")
+        return None
+    info(f"memlog: reusing descriptors {p} (same log, window and descriptor)")
+    return t

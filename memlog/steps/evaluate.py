@@ -34,13 +34,13 @@ import numpy as np
 from memlog._version import __version__
 from memlog.configfile import check_ints
 from memlog.descriptors.auto import AUTO, resolve_descriptor
-from memlog.descriptors.base import Describer, check_compatible
+from memlog.descriptors.base import Describer
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import DESCRIBERS, make_describer
 from memlog.descriptors.search import match, time_per_query
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import Whitening
-from memlog.errors import ConfigError, DescriptorError, EvaluationError, MemlogError
+from memlog.errors import ConfigError, EvaluationError, MemlogError
 from memlog.evaluation.metrics import (
     PAPER_READINGS,
     ProtocolResult,
@@ -55,7 +55,7 @@ from memlog.io.identity import log_identity, same_identity
 from memlog.io.open import open_log
 from memlog.io.records import ReadReport
 from memlog.outputs.annotated import read_scores, run_config, run_input_identity
-from memlog.outputs.descriptor_table import read_descriptors, write_descriptors
+from memlog.outputs.descriptor_table import read_cached, read_descriptors, write_descriptors
 from memlog.outputs.results import write_results
 from memlog.progress import info
 from memlog.scoring.config import ScoreConfig
@@ -214,19 +214,9 @@ def _reuse_scores(path: Path, reference: str, cfg: ScoreConfig, topic: str | Non
 def _described(log: str, path: Path, describer: Describer, window: FrameWindow, reports: list[ReadReport],
                scores: dict[str, dict[int, dict[str, Any]]] | None = None) -> DescriptorTable:
     """Descriptors of ``log`` (cached at ``path`` when made from the same log, window and describer)."""
-    if path.is_file():
-        try:
-            t = read_descriptors(path)
-            check_compatible(t.meta, describer.meta())
-            if not same_identity(t.extra.get("log_identity"), log):
-                info(f"memlog: not reusing {path}: made from another log (or {log} changed)")
-            elif t.extra.get("window") != window.to_dict():
-                info(f"memlog: not reusing {path}: made from another topic or window")
-            else:
-                info(f"memlog: reusing {path}")
-                return t
-        except DescriptorError as exc:
-            info(f"memlog: not reusing {path}: {exc}")
+    cached = read_cached(path, log, describer.meta(), window)
+    if cached is not None:
+        return cached
     t, report = describe_log(log, describer, window, scores=scores)
     reports.append(report)
     write_descriptors(path, t)

@@ -36,11 +36,9 @@ from memlog.descriptors.whitening import WhitenedDescriber
 from memlog.errors import ConfigError, DescriptorError
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow
-from memlog.io.identity import same_identity
 from memlog.io.records import ReadReport
-from memlog.outputs.descriptor_table import read_descriptors, stored_dtype, write_descriptors
+from memlog.outputs.descriptor_table import read_cached, read_descriptors, stored_dtype, write_descriptors
 from memlog.outputs.matches import write_match_log, write_matches
-from memlog.progress import info
 
 __all__ = ["localize", "LocalizeConfig", "LocalizeResult", "describer_for"]
 
@@ -100,33 +98,6 @@ class LocalizeResult:
         }
 
 
-def _cached_query(path: Path, query_log: str | os.PathLike[str], ref: DescriptorTable,
-                  window: FrameWindow) -> DescriptorTable | None:
-    """The cached query descriptors at ``path`` when they fit this query, else None (and why)."""
-    if not path.is_file():
-        return None
-    try:
-        qt = read_descriptors(path)
-        check_compatible(ref.meta, qt.meta)
-    except DescriptorError as exc:
-        info(f"memlog: not reusing {path}: {exc}")
-        return None
-    if not same_identity(qt.extra.get("log_identity"), query_log):
-        info(f"memlog: not reusing {path}: it was made from another query log (or {query_log} changed)")
-        return None
-    if qt.extra.get("window") != _window_of(qt, window):
-        info(f"memlog: not reusing {path}: it was made with other topics, time window or stride")
-        return None
-    info(f"memlog: reusing query descriptors {path} (same query log, window and descriptor)")
-    return qt
-
-
-def _window_of(qt: DescriptorTable, window: FrameWindow) -> dict[str, Any]:
-    """The window ``describe_log`` records for ``window`` (topics resolved as it resolves them)."""
-    topics = window.topics if window.topics is not None else tuple(qt.extra.get("window", {}).get("topics") or ())
-    return FrameWindow(tuple(topics), window.start_ns, window.end_ns, window.stride).to_dict()
-
-
 def localize(
     map_descriptors: str | os.PathLike[str],
     query_log: str | os.PathLike[str],
@@ -149,7 +120,7 @@ def localize(
     ref = read_descriptors(map_descriptors)
     if len(ref) == 0:
         raise DescriptorError(f"{map_descriptors}: the map has no descriptors")
-    qt = _cached_query(Path(query_descriptors), query_log, ref, cfg.window) if query_descriptors else None
+    qt = read_cached(query_descriptors, query_log, ref.meta, cfg.window) if query_descriptors else None
     reused = qt is not None
     reports: list[ReadReport] = []
     if qt is None:
