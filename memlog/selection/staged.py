@@ -59,6 +59,7 @@ class MSState:
     exact: bool = False
     m: NDArray[Any] | None = None
     crops_run: int = 0
+    scored: bool = False  # the CNN looked at this frame at all
 
 
 #: ``score(row, threshold, known)``: score row's MS, stopping once MS >= threshold is decided
@@ -162,6 +163,7 @@ def choose_in_segment(
                 need = max(need, to_beat)
         st = states[r]
         res = score(r, need if need > 0 else None, None)
+        st.scored = True
         st.crops_run += res.crops_run
         st.m = res.m
         if not res.exact:
