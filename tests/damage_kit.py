@@ -651,6 +651,9 @@ def run_case(case: Case, work: Path, limit: int = 120) -> Outcome:
         out.problems.append(f"read raised {type(exc).__name__}: {exc}")
     out.seconds = time.perf_counter() - t0
     out.got = len(got)
+    from memlog.io import clear_cache
+
+    clear_cache()  # what opening the log learned (its temporary copies) is kept until the process ends
     if _tree_hash(path) != before:
         out.problems.append("input modified")
     left = _temp_files() - temps

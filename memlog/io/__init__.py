@@ -33,6 +33,7 @@ if TYPE_CHECKING:
         LogReader as LogReader,
         StreamItem as StreamItem,
     )
+    from memlog.io._opened import clear_cache as clear_cache
     from memlog.io.frame import Frame as Frame
     from memlog.io.mcap import McapLogWriter as McapLogWriter, copy_log as copy_log
     from memlog.io.open import open_log as open_log
@@ -65,6 +66,7 @@ _WHERE = {
     "atomic_output": "memlog.io.atomic",
     "write_bytes_atomic": "memlog.io.atomic",
     "check_output": "memlog.io.atomic",
+    "clear_cache": "memlog.io._opened",
     "LogReadError": "memlog.errors",
     "LogWriteError": "memlog.errors",
     "ImageDecodeError": "memlog.errors",

@@ -6,7 +6,7 @@ from __future__ import annotations
 import heapq
 import os
 import stat
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from typing import IO, TypeVar
 
 from memlog.errors import LogReadError
@@ -133,11 +133,3 @@ def merge_groups(groups: Iterable[list[tuple[int, T]]]) -> Iterator[T]:
             order += 1
     while heap:
         yield heapq.heappop(heap)[2]
-
-
-def first_error(fn: Callable[[], T]) -> tuple[T | None, str]:
-    """``fn()`` and "" or None and why it failed (for optional index reads)."""
-    try:
-        return fn(), ""
-    except Exception as exc:  # noqa: BLE001 - an index that does not parse is a reason, not a crash
-        return None, f"{type(exc).__name__}: {exc}"

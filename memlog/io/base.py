@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import logging
 import os
-import sys
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Container, Iterable, Iterator, Mapping
 from dataclasses import dataclass
@@ -14,6 +14,7 @@ from memlog.errors import ConfigError, ImageDecodeError, TopicError
 from memlog.io.camera import camera_kind, extract_image
 from memlog.io.decoders import UnsupportedEncoding, make_deserializer
 from memlog.io.frame import Frame
+from memlog.io.frame_table import FrameTable
 from memlog.io.records import Attachment, ChannelInfo, RawMessage, ReadReport
 from memlog.io.types import LogInfo, TopicInfo
 
@@ -34,8 +35,9 @@ class FrameError:
 class StreamItem:
     """One record of :meth:`LogReader.stream`.
 
-    For a camera message: ``index`` is its position on its topic (from 0, log-time order, counted
-    from the start of the log whatever the window), ``frame`` the deserialized frame (None when
+    For a camera message: ``index`` is its frame index (its position in the topic's
+    :class:`~memlog.io.frame_table.FrameTable`: the same whatever the window, stride or reader),
+    ``frame`` the deserialized frame (None when
     the message does not deserialize: it was reported). For a passthrough message (a topic
     named in ``passthrough``): ``index`` and ``frame`` are None.
     """
@@ -68,16 +70,26 @@ class FrameWindow:
                 "end_ns": self.end_ns, "stride": self.stride}
 
 
-def _warn_stderr(text: str) -> None:
-    print(f"memlog: warning: {text}", file=sys.stderr)
+_LOG = logging.getLogger("memlog.io")
+
+
+def _warn_log(text: str) -> None:
+    _LOG.warning(text)
+
+
+def _silent(text: str) -> None:
+    """The warning hook of a reader whose warnings its caller reports (a worker's)."""
 
 
 class LogReader(ABC):
     """A log opened for streaming. Use :func:`memlog.io.open_log` to get one.
 
-    Subclasses implement :meth:`channels`, :meth:`_iter_messages` and optionally
-    :meth:`metadata` / :meth:`attachments`. Everything streams: no method loads the
-    whole log.
+    Subclasses implement :meth:`channels`, :meth:`_iter_messages` (messages carry
+    ``RawMessage.where``), :meth:`frame_table` and optionally :meth:`metadata` /
+    :meth:`attachments`. Everything streams: no method loads the whole log.
+
+    Warnings go to :attr:`report` and to :attr:`on_warning` (default: the ``memlog.io`` logger);
+    a warning this process already said about the same file is recorded but not said again.
     """
 
     format: str = ""
@@ -86,7 +98,9 @@ class LogReader(ABC):
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = os.fspath(path)
         self.report = ReadReport(self.path)
-        self.on_warning: Callable[[str], None] = _warn_stderr
+        self.on_warning: Callable[[str], None] = _warn_log
+        self._said: set[str] = set()  # readers of the same file share it (memlog.io._opened)
+        self._pending: list[str] = []  # what opening found that nobody has said yet (a quiet reader learned it)
 
     # -- to implement -------------------------------------------------------------
     @abstractmethod
@@ -108,8 +122,13 @@ class LogReader(ABC):
         return iter(())
 
     def message_counts(self) -> dict[int, int] | None:
-        """Messages per channel id from an index, or None when only a full scan can tell."""
+        """Messages per channel id from an index (or the scan made when the log was opened), or
+        None when only a full read can tell."""
         return None
+
+    @abstractmethod
+    def frame_table(self, topic: str) -> FrameTable:
+        """The frame numbering of camera ``topic`` (see :mod:`memlog.io.frame_table`), built once."""
 
     def checksums(self) -> str:
         """What the data read so far was checked against: ``"all"`` (every chunk had a CRC and
@@ -129,7 +148,25 @@ class LogReader(ABC):
 
     def warn(self, text: str) -> None:
         self.report.warn(text)
+        if self.on_warning is _silent or text in self._said:
+            return
+        self._said.add(text)
         self.on_warning(text)
+
+    def quiet_warnings(self) -> None:
+        """Record warnings in :attr:`report` only (a worker's reader: its caller reports them)."""
+        self.on_warning = _silent
+
+    def _learned_before(self, report: ReadReport) -> None:
+        """Start from what an earlier reader of this file found when it opened it (``report``):
+        recorded here; warnings nobody said yet are said at the first read."""
+        self.report.merge(report)
+        self._pending = [w for w in report.warnings if w not in self._said]
+
+    def _say_pending(self) -> None:
+        pending, self._pending = self._pending, []
+        for text in pending:
+            self.warn(text)
 
     @property
     def size_bytes(self) -> int:
@@ -153,6 +190,7 @@ class LogReader(ABC):
         log_time_order: bool = True,
     ) -> Iterator[RawMessage]:
         """Stream raw messages, optionally filtered by topic and log-time window [start, end)."""
+        self._say_pending()
         wanted = set(topics) if topics is not None else None
         if wanted is not None:
             missing = wanted - set(self.topics())
@@ -192,6 +230,7 @@ class LogReader(ABC):
         """Topic table: type, encoding, count and time range. From the index when there is one,
         unless ``scan``: then every message is read (verifying checksums where the format has
         them) and the counts are the data's."""
+        self._say_pending()
         counts = None if scan else self.message_counts()
         ranges: dict[int, list[int]] = {}
         if counts is None:
@@ -241,40 +280,20 @@ class LogReader(ABC):
             raise TopicError(f"{self.path}: topic {bad} is not a camera topic (camera topics: {', '.join(cams) or 'none'})")
         return wanted
 
-    def count_frames(self, window: FrameWindow) -> int | None:
-        """How many frames :meth:`stream` yields for ``window``, from the index when the log has
-        one (None when only a full scan could tell)."""
-        counts = self.message_counts()
-        if counts is None:
-            return None
-        windowed = window.start_ns is not None or window.end_ns is not None
+    def count_frames(self, window: FrameWindow) -> int:
+        """How many frames :meth:`stream` yields for ``window`` at most (from the frame tables;
+        frames listed by the index but unreadable are counted)."""
         total = 0
         for topic in self.check_camera_topics(window.topics):
-            n = sum(counts.get(ch.id, 0) for ch in self.channels() if ch.topic == topic)
-            times = self.topic_times(topic) if windowed else None
-            if windowed and times is None:
-                return None
-            total += _count_window(n, times, window)
+            first, last = self.frame_table(topic).window(window.start_ns, window.end_ns)
+            total += _on_stride(first, last, window.stride)
         return total
 
     def topic_times(self, topic: str) -> Any:
-        """Sorted log times (numpy int64) of every message on ``topic`` from the log's index,
-        without reading message data; None when the format or this file has no such index."""
-        return None
-
-    def index_offsets(self, topics: Iterable[str], start_ns: int) -> dict[str, int] | None:
-        """Per topic, how many of its messages lie before ``start_ns``, from :meth:`topic_times`
-        (None when a topic has no such index). Frame indices then count indexed messages, also
-        those a damaged region makes unreadable."""
-        import numpy as np
-
-        out: dict[str, int] = {}
-        for t in topics:
-            times = self.topic_times(t)
-            if times is None:
-                return None
-            out[t] = int(np.searchsorted(np.asarray(times), start_ns, side="left"))
-        return out
+        """Sorted log times (numpy int64) of the frames of camera ``topic`` (its
+        :meth:`frame_table`: position = frame index), without reading message data when the log
+        has a trusted index."""
+        return self.frame_table(topic).times
 
     def stream(
         self,
@@ -302,24 +321,19 @@ class LogReader(ABC):
         extra = set(passthrough) - cams
         if not cams and not extra:
             return
+        tables = {t: self.frame_table(t) for t in cams}
         decoders: dict[int, Any] = {}
-        counters: dict[str, int] = {}
-        read_from = None if cams else start_ns
-        if start_ns is not None and cams:
-            # With an index of message times, the window's first index is known without reading
-            # what comes before it; otherwise read from the start, counting.
-            offsets = self.index_offsets(cams, start_ns)
-            if offsets is not None:
-                counters, read_from = offsets, start_ns
-        for m in self.messages(cams | extra, read_from, end_ns, True):
+        for m in self.messages(cams | extra, start_ns, end_ns, True):
             topic = m.channel.topic
             if topic not in cams:
-                if start_ns is None or m.log_time >= start_ns:
-                    yield StreamItem(m)
+                yield StreamItem(m)
                 continue
-            idx = counters.get(topic, 0)
-            counters[topic] = idx + 1
-            if start_ns is not None and m.log_time < start_ns:
+            idx = tables[topic].index_of(m.where)
+            if idx < 0:
+                self.report.index_damaged = True
+                if self.report.count("bad_messages", ("unlisted", m.where, topic)):
+                    self.warn(f"{self.path}: topic {topic}: a message at log time {m.log_time} is not in the log's "
+                              "index, so it has no frame index (the index is damaged); skipped")
                 continue
             if idx % stride or (indices is not None and idx not in indices.get(topic, ())):
                 continue
@@ -375,17 +389,21 @@ class LogReader(ABC):
             msgtype=ch.msgtype,
         )
 
-    def absorb(self, report: ReadReport, errors: Iterable[FrameError]) -> None:
-        """Frame-level damage that a worker found reading this same log (its ``report`` and frame
-        ``errors``): counted in this reader's report and warned as if this reader had found it."""
-        self.report.bad_messages += report.bad_messages
-        self.report.undecodable_frames += report.undecodable_frames
+    def absorb(self, report: ReadReport, errors: Iterable[FrameError] = ()) -> None:
+        """The damage a worker found reading this same log (its ``report`` and frame ``errors``):
+        added to this reader's report (damage at the same place counts once) and warned, once, as
+        if this reader had found it."""
+        before = set(self.report.warnings)
+        self.report.merge(report)
+        for text in report.warnings:
+            if text not in before:
+                self.warn(text)
         for err in errors:
             self.warn(str(err))
 
     def _frame_error(self, m: RawMessage, idx: int, reason: str, errors: list[FrameError] | None) -> None:
         err = FrameError(self.path, m.channel.topic, idx, m.log_time, reason)
-        self.report.bad_messages += 1
+        self.report.count("bad_messages", ("frame", m.channel.topic, idx))
         if errors is not None:
             errors.append(err)
         self.warn(str(err))
@@ -393,24 +411,13 @@ class LogReader(ABC):
     def decode_error(self, frame: Frame, exc: ImageDecodeError) -> FrameError:
         """Record a frame whose pixels do not decode; returns the error for the caller's list."""
         err = FrameError(self.path, frame.topic, frame.index, frame.log_time_ns, f"image does not decode: {exc}")
-        self.report.undecodable_frames += 1
+        self.report.count("undecodable_frames", (frame.topic, frame.index))
         self.warn(str(err))
         return err
 
 
-def _count_window(n: int, times: Any, window: FrameWindow) -> int:
-    """Frames of a topic with ``n`` messages (log times ``times`` when a window is set) that lie
-    in the window and on the stride (indices counted from the first message)."""
-    import numpy as np
-
-    first, last = 0, n
-    if times is not None:
-        t = np.asarray(times)
-        if window.start_ns is not None:
-            first = int(np.searchsorted(t, window.start_ns, side="left"))
-        if window.end_ns is not None:
-            last = int(np.searchsorted(t, window.end_ns, side="left"))
+def _on_stride(first: int, last: int, stride: int) -> int:
+    """How many multiples of ``stride`` lie in [``first``, ``last``)."""
     if last <= first:
         return 0
-    s = window.stride
-    return (last - 1) // s - (first + s - 1) // s + 1
+    return (last - 1) // stride - (first + stride - 1) // stride + 1

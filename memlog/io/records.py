@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Hashable
 from dataclasses import dataclass, field
 
 __all__ = ["SchemaInfo", "ChannelInfo", "RawMessage", "Attachment", "ReadReport"]
@@ -34,13 +35,19 @@ class ChannelInfo:
 
 @dataclass(frozen=True)
 class RawMessage:
-    """One message with its serialized bytes untouched."""
+    """One message with its serialized bytes untouched.
+
+    ``where`` is where the reader found it, ``(container, offset)``: the file offset of the chunk
+    (or of the record, the row id) and the message's offset inside it; the readers' frame tables
+    (:class:`~memlog.io.frame_table.FrameTable`) are keyed on it. None for messages made elsewhere.
+    """
 
     channel: ChannelInfo
     log_time: int
     publish_time: int
     sequence: int
     data: bytes
+    where: tuple[int, int] | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -75,9 +82,38 @@ class ReadReport:
     index_damaged: bool = False
     skipped_files: int = 0
     warnings: list[str] = field(default_factory=list)
+    places: set[tuple[str, Hashable]] = field(default_factory=set, repr=False, compare=False)
 
     def warn(self, text: str) -> None:
-        self.warnings.append(text)
+        if text not in self.warnings:
+            self.warnings.append(text)
+
+    def count(self, kind: str, place: Hashable) -> bool:
+        """Count one damaged ``place`` (a chunk's offset, a message's location) under ``kind``
+        (``skipped_chunks``, ``bad_messages``, ``undecodable_frames``, ``skipped_files``), once:
+        a second pass over the same damage is not new damage. Returns whether it was new."""
+        key = (kind, place)
+        if key in self.places:
+            return False
+        self.places.add(key)
+        setattr(self, kind, getattr(self, kind) + 1)
+        return True
+
+    def merge(self, other: "ReadReport") -> None:
+        """Add what ``other`` (another reader of the same log: a worker, an earlier pass) found;
+        damage both found at the same place counts once."""
+        self.truncated |= other.truncated
+        self.index_damaged |= other.index_damaged
+        if other.bytes_read is not None:
+            self.bytes_read = other.bytes_read if self.bytes_read is None else min(self.bytes_read, other.bytes_read)
+        for kind in ("skipped_chunks", "bad_messages", "undecodable_frames", "skipped_files"):
+            placed = [p for k, p in other.places if k == kind]
+            unplaced = getattr(other, kind) - len(placed)  # counted without a place: always added
+            setattr(self, kind, getattr(self, kind) + max(0, unplaced))
+            for place in placed:
+                self.count(kind, place)
+        for w in other.warnings:
+            self.warn(w)
 
     @property
     def ok(self) -> bool:

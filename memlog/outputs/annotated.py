@@ -198,16 +198,13 @@ def read_scores(path: str | os.PathLike[str], *, report: ReadReport | None = Non
             try:
                 rec = decode_record(SCORES, m.channel, m.data)
             except RecordDecodeError as exc:
-                reader.report.bad_messages += 1
+                reader.report.count("bad_messages", (m.channel.topic, i))
                 reader.warn(f"{reader.path}: topic {m.channel.topic}, message {i}: score record does not decode "
                             f"({exc}); skipped")
                 continue
             out.setdefault(m.channel.topic.removesuffix(SCORES_SUFFIX), []).append(rec)
         if report is not None:
-            report.truncated = report.truncated or reader.report.truncated
-            report.bad_messages += reader.report.bad_messages
-            report.skipped_chunks += reader.report.skipped_chunks
-            report.warnings.extend(reader.report.warnings)
+            report.merge(reader.report)
     for recs in out.values():
         recs.sort(key=lambda r: r["frame_index"])
     return out

@@ -126,7 +126,7 @@ def _thumbs(log: str, topic: str, indices: set[int], width: int = 160) -> dict[i
     if not indices:
         return out
     with open_log(log) as reader:
-        reader.on_warning = lambda text: None  # the evaluation already reported damage
+        reader.quiet_warnings()  # the evaluation already reported damage
         for f in reader.frames([topic], indices={topic: indices}):
             if f.index in indices:
                 try:

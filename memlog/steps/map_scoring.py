@@ -66,7 +66,7 @@ def cheap_chunk(log: str, config: ScoreConfig, window: FrameWindow, chunk: Chunk
     out: list[CheapFrame] = []
     with open_log(log) as reader:
         if chunk is not None:
-            reader.on_warning = lambda text: None
+            reader.quiet_warnings()
         errors: list[FrameError] = []
         w = window if chunk is None else FrameWindow(window.topics, chunk.start_ns, chunk.end_ns, window.stride)
         frames = reader.frames(w.topics, w.start_ns, w.end_ns, w.stride, errors,
@@ -178,7 +178,7 @@ def choose_chunk(log: str, config: ScoreConfig, window: FrameWindow, jobs: list[
     mem = getattr(mem, "exact", mem)  # fast mode's surrogate is not used for the choice
     results: list[SegmentResult] = []
     with open_log(log) as reader:
-        reader.on_warning = lambda text: None
+        reader.quiet_warnings()
         for job in jobs:
             loader = _Loader(reader, job, window.stride)
 

@@ -144,8 +144,9 @@ def iter_scores(
 # -- chunks of frames, scored by workers ----------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class Chunk:
-    """A contiguous run of frames in log-time order: their indices per topic and the log-time
-    range [``start_ns``, ``end_ns``) that holds them (so a worker's reader can seek)."""
+    """A contiguous run of frames in log-time order: their frame indices per topic and the
+    log-time range [``start_ns``, ``end_ns``) that holds them (so a worker's reader seeks to it;
+    the frame indices are the log's one numbering, :mod:`memlog.io.frame_table`)."""
 
     indices: dict[str, frozenset[int]]
     start_ns: int
@@ -175,62 +176,22 @@ class ScoredChunk:
 
 
 def plan_chunks(reader: LogReader, window: FrameWindow, size: int) -> list[Chunk]:
-    """The frames of ``window`` cut into chunks of ``size`` frames, in log-time order: from the
-    index of message times when the log has one (nothing read), else from one pass over the camera
-    messages (nothing deserialized)."""
-    topics = set(reader.check_camera_topics(window.topics))
-    planned = _plan_from_index(reader, sorted(topics), window, size)
-    if planned is not None:
-        return planned
-    chunks: list[Chunk] = []
-    cur: dict[str, set[int]] = {}
-    n = 0
-    t0 = t1 = 0
-    counters: dict[str, int] = {}
-    last: dict[str, tuple[int, int]] = {}
-    prev: dict[str, tuple[int, int]] = {}
-    for m in reader.messages(topics, None, window.end_ns, True):
-        topic = m.channel.topic
-        idx = counters.get(topic, 0)
-        counters[topic] = idx + 1
-        if (window.start_ns is not None and m.log_time < window.start_ns) or idx % window.stride:
-            continue
-        if n >= size and m.log_time != t1:  # frames of one log time stay in one chunk
-            chunks.append(Chunk({k: frozenset(v) for k, v in cur.items()}, t0, t1 + 1, n,
-                                {t: prev[t] for t in cur if t in prev}))
-            cur, n = {}, 0
-        if n == 0:
-            t0 = m.log_time
-            prev = dict(last)
-        cur.setdefault(topic, set()).add(idx)
-        last[topic] = (idx, m.log_time)
-        t1 = m.log_time
-        n += 1
-    if n:
-        chunks.append(Chunk({k: frozenset(v) for k, v in cur.items()}, t0, t1 + 1, n,
-                            {t: prev[t] for t in cur if t in prev}))
-    return chunks
-
-
-def _plan_from_index(reader: LogReader, topics: list[str], window: FrameWindow, size: int) -> list[Chunk] | None:
+    """The frames of ``window`` cut into chunks of ``size`` frames, in log-time order, from the
+    log's frame tables (:mod:`memlog.io.frame_table`: nothing is read beyond what opening the log
+    read). Frames of one log time stay in one chunk."""
     import numpy as np
 
+    topics = sorted(set(reader.check_camera_topics(window.topics)))
     entries: list[tuple[int, int, str, int]] = []
     for k, t in enumerate(topics):
-        times = reader.topic_times(t)
-        if times is None:
-            return None
-        times = np.asarray(times, dtype=np.int64)
-        idx = np.arange(len(times))
-        ok = (idx % window.stride) == 0
-        if window.start_ns is not None:
-            ok &= times >= window.start_ns
-        if window.end_ns is not None:
-            ok &= times < window.end_ns
-        entries.extend((int(times[i]), k, t, int(i)) for i in np.flatnonzero(ok))
+        table = reader.frame_table(t)
+        first, last = table.window(window.start_ns, window.end_ns)
+        idx = np.arange(first, last)
+        idx = idx[idx % window.stride == 0]
+        entries.extend((int(table.times[i]), k, t, int(i)) for i in idx)
     entries.sort()
     chunks = []
-    last: dict[str, tuple[int, int]] = {}
+    last_of: dict[str, tuple[int, int]] = {}
     a = 0
     while a < len(entries):
         b = min(a + size, len(entries))
@@ -239,10 +200,10 @@ def _plan_from_index(reader: LogReader, topics: list[str], window: FrameWindow, 
         part = entries[a:b]
         a = b
         ind: dict[str, set[int]] = {}
-        prev = dict(last)
+        prev = dict(last_of)
         for ts, _, t, i in part:
             ind.setdefault(t, set()).add(i)
-            last[t] = (i, ts)
+            last_of[t] = (i, ts)
         chunks.append(Chunk({k: frozenset(v) for k, v in ind.items()}, part[0][0], part[-1][0] + 1, len(part),
                             {t: prev[t] for t in ind if t in prev}))
     return chunks
@@ -257,7 +218,7 @@ def score_chunk(log: str, config: ScoreConfig, window: FrameWindow, chunk: Chunk
     scorer is loaded once per process. Warnings are collected in the report, not printed."""
     scorer = _scorer_for(config)
     with open_log(log) as reader:
-        reader.on_warning = lambda text: None
+        reader.quiet_warnings()
         errors: list[FrameError] = []
         w = window if chunk is None else FrameWindow(window.topics, chunk.start_ns, chunk.end_ns, window.stride)
         seed = _seed(reader, scorer, chunk) if chunk is not None and config.duplicates != "off" else None

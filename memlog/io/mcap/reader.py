@@ -10,21 +10,27 @@ The data is the truth; the summary (index) is a shortcut taken only when it prov
   to no more than the size it declares, and checked against its CRC.
 
 When the index passes, chunks are read through it (filtered by channel and time) and merged in
-log-time order. When it does not, the chunks the data walk found (plus any intact chunk the
-index knows past damage) are read instead and the reader reports the index as damaged. Without a
-summary the file is read sequentially up to the damage. A chunk whose CRC does not match is
-reported and skipped; the rest is read. A zero-filled tail is named where the zeros start.
+log-time order, and the frame tables (:mod:`memlog.io.frame_table`) come from its message
+indexes (checked: channel, count, times and offsets within their chunk). When it does not, or
+there is no summary (a cut or unfinished recording), the data is **scanned once** when the log
+is opened, up to the damage (plus any intact chunk the index knows past it): every chunk is
+decompressed and checked, and the scan keeps where each readable chunk and top-level message
+lies, the channels, the message counts and the frame tables; every later read seeks to the
+chunks it needs (:mod:`memlog.io._opened` keeps the scan for the next reader of the same file).
+A chunk whose CRC does not match is reported and skipped; the rest is read. A zero-filled tail
+is named where the zeros start.
 """
 
 from __future__ import annotations
 
+import copy
 import heapq
 import io
 import os
 import struct
 import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import IO, Any
 
 from mcap.data_stream import ReadDataStream
@@ -32,10 +38,15 @@ from mcap.records import Attachment as McapAttachment
 from mcap.records import Channel, ChunkIndex, Header, Message, Metadata, Schema, Statistics
 from mcap.summary import Summary
 
+import numpy as np
+
 from memlog.errors import LogReadError
-from memlog.io._damage import MAX_CHUNK_BYTES, check_regular_file, damage_place, decompress, merge_groups
+from memlog.io._damage import MAX_CHUNK_BYTES, check_regular_file, damage_place, decompress
+from memlog.io._opened import counted_scan, file_key, learned, release
 from memlog.io.base import LogReader
-from memlog.io.records import Attachment, ChannelInfo, RawMessage, SchemaInfo
+from memlog.io.camera import camera_kind
+from memlog.io.frame_table import FrameTable
+from memlog.io.records import Attachment, ChannelInfo, RawMessage, ReadReport, SchemaInfo
 from memlog.io.types import LogInfo
 
 __all__ = ["McapLog"]
@@ -60,12 +71,36 @@ class _Damage(Exception):
 
 @dataclass(frozen=True)
 class _ChunkRef:
-    """A chunk record found in the data (or an index entry to try): offset and log-time range."""
+    """A chunk record found in the data (or an index entry to try), or a message record outside
+    chunks (``op`` 0x05): offset and log-time range."""
 
     offset: int
     start: int
     end: int
     index_length: int = 0  # the length the chunk index gives (used only if the record's own fails)
+    op: int = _CHUNK
+
+
+@dataclass
+class _Learned:
+    """What opening (and scanning) one MCAP file learned; shared by its readers in a process."""
+
+    said: set[str] = field(default_factory=set)
+    header: Header | None = None
+    summary: Summary | None = None
+    schemas: dict[int, SchemaInfo | None] = field(default_factory=dict)
+    channels: dict[int, ChannelInfo] = field(default_factory=dict)
+    data_channels: set[int] = field(default_factory=set)
+    indexed: bool = False  # the summary's chunk index drives the reads
+    chunks: list[_ChunkRef] | None = None  # the scan's readable chunks and top-level messages
+    counts: dict[int, int] | None = None  # the scan's messages per channel
+    ranges: dict[int, list[int]] = field(default_factory=dict)  # the scan's log-time range per channel
+    tables: dict[str, FrameTable] = field(default_factory=dict)
+    crcs: list[bool] = field(default_factory=list)  # per chunk the scan read: was its CRC checked
+    report: ReadReport | None = None  # what opening found (copied into every reader's report)
+
+    def close(self) -> None:
+        pass
 
 
 def _schema_info(s: Schema | None) -> SchemaInfo | None:
@@ -85,9 +120,10 @@ def _parse(cls: Any, body: bytes, pos: int) -> Any:
     return rec
 
 
-def _chunk_records(body: bytes, pos: int, validate_crc: bool) -> tuple[list[Any], bool]:
-    """Schema, Channel and Message records of the chunk record ``body`` (at byte ``pos``) and
-    whether its CRC was checked. Raises :class:`_Damage`."""
+def _chunk_records(body: bytes, pos: int, validate_crc: bool) -> tuple[list[tuple[int, Any]], bool]:
+    """Schema, Channel and Message records of the chunk record ``body`` (at byte ``pos``), each
+    with its offset in the chunk's uncompressed records, and whether the CRC was checked. Raises
+    :class:`_Damage`."""
     if len(body) < _CHUNK_HEAD + 8:
         raise _Damage(pos, "chunk record is too short")
     start, end, size, crc, clen = struct.unpack_from("<QQQII", body, 0)
@@ -110,7 +146,7 @@ def _chunk_records(body: bytes, pos: int, validate_crc: bool) -> tuple[list[Any]
     checked = validate_crc and crc != 0
     if checked and zlib.crc32(data) != crc:
         raise _Damage(pos, f"chunk fails its CRC check (expected {crc:#010x}, got {zlib.crc32(data):#010x})")
-    out: list[Any] = []
+    out: list[tuple[int, Any]] = []
     at = 0
     while at < len(data):
         if at + 9 > len(data):
@@ -120,11 +156,11 @@ def _chunk_records(body: bytes, pos: int, validate_crc: bool) -> tuple[list[Any]
             raise _Damage(pos, "a record in the chunk is longer than the chunk")
         body_i = data[at + 9 : at + 9 + n]
         if op == _MESSAGE:
-            out.append(_parse(Message, body_i, pos))
+            out.append((at, _parse(Message, body_i, pos)))
         elif op == _CHANNEL:
-            out.append(_parse(Channel, body_i, pos))
+            out.append((at, _parse(Channel, body_i, pos)))
         elif op == _SCHEMA:
-            out.append(_parse(Schema, body_i, pos))
+            out.append((at, _parse(Schema, body_i, pos)))
         at += 9 + n
     return out, checked
 
@@ -142,28 +178,35 @@ class McapLog(LogReader):
             self._fh: IO[bytes] = open(self.path, "rb")
         except OSError as exc:
             raise LogReadError(f"{self.path}: cannot open: {exc.strerror}") from exc
-        if self._fh.read(len(MAGIC)) != MAGIC:
-            self._fh.close()
-            raise LogReadError(f"{self.path}: not an MCAP file (bad magic)")
-        self.header: Header | None = None
-        self.summary: Summary | None = None
-        self._schemas: dict[int, SchemaInfo | None] = {}
-        self._channels: dict[int, ChannelInfo] = {}
-        self._data_channels: set[int] = set()  # channel ids confirmed by a record in the data
         self._chunks_crc: list[bool] = []  # per chunk read: was its CRC checked
-        self._top_messages = 0
-        self._damage_told = False  # the sequential read's damage warning is given once
-        self._indexed = False  # the summary's chunk index drives the reads
-        self._chunks: list[_ChunkRef] | None = None  # chunks to read when the index is not trusted
+        self._key: Any = None
         try:
-            self.header = self._read_header()
-            self._open_summary()
+            if self._fh.read(len(MAGIC)) != MAGIC:
+                raise LogReadError(f"{self.path}: not an MCAP file (bad magic)")
+            key = file_key("mcap", self.path, validate_crcs)
+            self._l, new = learned(key, self._learn)
+            self._key = key
         except BaseException:
             self._fh.close()
             raise
+        self._said = self._l.said
+        if not new and self._l.report is not None:  # what opening found, already said
+            self._learned_before(self._l.report)
+        self.header = self._l.header
+        self.summary = self._l.summary
         self.profile = self.header.profile if self.header else ""
 
     # -- opening ------------------------------------------------------------------
+    def _learn(self) -> _Learned:
+        """Open the file for the first time in this process: header, summary, and the scan
+        when the summary cannot drive the reads."""
+        self._l = _Learned()
+        self._said = self._l.said
+        self._l.header = self._read_header()
+        self._open_summary()
+        self._l.report = copy.deepcopy(self.report)
+        return self._l
+
     def _read_header(self) -> Header | None:
         try:
             op, n = self._head(len(MAGIC))
@@ -228,11 +271,12 @@ class McapLog(LogReader):
         return summary, start, ""
 
     def _open_summary(self) -> None:
+        learned_ = self._l
         summary, summary_start, why = self._read_summary()
         if summary is not None and summary.channels:
-            self.summary = summary
+            learned_.summary = summary
             for sid, s in summary.schemas.items():
-                self._schemas[sid] = _schema_info(s)
+                learned_.schemas[sid] = _schema_info(s)
             for c in summary.channels.values():
                 self._add_channel(c)
         if summary is None or not summary.channels:
@@ -240,19 +284,20 @@ class McapLog(LogReader):
                 self.report.index_damaged = True
             if why.startswith("no footer"):
                 self.report.truncated = True
-            self.summary = None
+            learned_.summary = None
             self.warn(f"{self.path}: {why or 'the summary lists no channels'}: reading the data sequentially")
-            self._scan_channels()
+            self._scan()
             return
         if not summary.chunk_indexes:
-            return  # unchunked file (or no messages): read sequentially, channels from the summary
-        walked, damage = self._walk_chunks(summary_start)
+            self._scan()  # unchunked file (or no messages): scanned once, channels from the summary
+            return
+        walked, damage, top = self._walk_chunks(summary_start)
         index = {ci.chunk_start_offset: ci for ci in summary.chunk_indexes}
         differ = [o for o, r in walked.items() if o in index and (
             index[o].chunk_length != r.index_length or index[o].message_start_time != r.start
             or index[o].message_end_time != r.end)]
-        if damage is None and set(walked) == set(index) and not self._top_messages and not differ:
-            self._indexed = True
+        if damage is None and set(walked) == set(index) and not top and not differ:
+            learned_.indexed = True
             return
         self.report.index_damaged = True
         reasons: list[str] = []
@@ -264,26 +309,23 @@ class McapLog(LogReader):
             reasons.append(f"{len(missing)} chunk(s) in the data are not in the index")
         if bogus:
             reasons.append(f"{len(bogus)} index entr{'y points' if len(bogus) == 1 else 'ies point'} to no chunk the "
-                       f"data walk found (first: byte {bogus[0]})")
+                           f"data walk found (first: byte {bogus[0]})")
         if differ:
             reasons.append(f"{len(differ)} index entr{'y gives' if len(differ) == 1 else 'ies give'} another length or "
                            f"time range than the chunk record (first: byte {differ[0]})")
-        if self._top_messages:
-            reasons.append(f"{self._top_messages} message(s) lie outside chunks")
+        if top:
+            reasons.append(f"{top} message(s) lie outside chunks")
         self.warn(f"{self.path}: the chunk index and the data section disagree ({'; '.join(reasons)}): reading the data instead")
-        if self._top_messages:
-            self.summary = None  # messages outside chunks: only a sequential read finds them all
-            return
-        refs = {o: _ChunkRef(r.offset, r.start, r.end) for o, r in walked.items()}
-        for off in bogus:  # past damage the index may still lead to intact chunks: try them
-            ci = index[off]
-            refs[off] = _ChunkRef(off, ci.message_start_time, ci.message_end_time, ci.chunk_length)
-        self._chunks = sorted(refs.values(), key=lambda r: r.offset)
+        # past damage the index may still lead to intact chunks: the scan tries them
+        self._scan([_ChunkRef(off, index[off].message_start_time, index[off].message_end_time,
+                              index[off].chunk_length) for off in bogus], damage_known=damage is not None)
 
-    def _walk_chunks(self, end: int) -> tuple[dict[int, _ChunkRef], _Damage | None]:
+    def _walk_chunks(self, end: int) -> tuple[dict[int, _ChunkRef], _Damage | None, int]:
         """Chunk records of the data section by their headers alone (bodies are skipped), up to
-        the DataEnd record or byte ``end``; the damage that stopped the walk, if any."""
+        the DataEnd record or byte ``end``; the damage that stopped the walk, if any, and how many
+        messages lie outside chunks."""
         found: dict[int, _ChunkRef] = {}
+        top = 0
         pos = len(MAGIC)
         try:
             while pos < end:
@@ -299,87 +341,185 @@ class McapLog(LogReader):
                     s, e = struct.unpack_from("<QQ", head, 0)
                     found[pos] = _ChunkRef(pos, s, e, 9 + n)
                 elif op == _MESSAGE:
-                    self._top_messages += 1
+                    top += 1
                 elif op == _DATA_END or op == _FOOTER:
                     break
                 pos += 9 + n
         except _Damage as exc:
-            return found, exc
-        return found, None
+            return found, exc, top
+        return found, None, top
+
+    def _scan(self, past_damage: list[_ChunkRef] | None = None, *, damage_known: bool = False) -> None:
+        """Read the data section once, up to the damage, and learn what the reads need: where
+        every readable chunk and top-level message lies, the channels, the message counts and
+        time ranges, and the frame tables. ``past_damage``: chunks the index knows that the walk
+        did not reach, tried after it."""
+        counted_scan(os.path.realpath(self.path))
+        lrn = self._l
+        refs: list[_ChunkRef] = []
+        counts: dict[int, int] = {}
+        entries: dict[str, list[tuple[int, int, int]]] = {}
+
+        def note(ref: _ChunkRef, msgs: list[tuple[int, Message]]) -> None:
+            refs.append(ref)
+            for inner, m in msgs:
+                counts[m.channel_id] = counts.get(m.channel_id, 0) + 1
+                r = lrn.ranges.setdefault(m.channel_id, [m.log_time, m.log_time])
+                r[0], r[1] = min(r[0], m.log_time), max(r[1], m.log_time)
+                ch = lrn.channels.get(m.channel_id)
+                if ch is not None and camera_kind(ch.msgtype):
+                    entries.setdefault(ch.topic, []).append((m.log_time, ref.offset, inner))
+
+        walk = self._walk_records({_SCHEMA, _CHANNEL, _MESSAGE, _CHUNK})
+        for pos, op, body in walk:
+            try:
+                if op == _SCHEMA:
+                    self._absorb([(0, _parse(Schema, body, pos))])
+                elif op == _CHANNEL:
+                    self._absorb([(0, _parse(Channel, body, pos))])
+                elif op == _MESSAGE:
+                    m = _parse(Message, body, pos)
+                    note(_ChunkRef(pos, m.log_time, m.log_time, 9 + len(body), _MESSAGE), [(0, m)])
+                else:
+                    recs, checked = _chunk_records(body, pos, self.validate_crcs)
+                    lrn.crcs.append(checked)
+                    msgs = self._absorb(recs)
+                    start, end = struct.unpack_from("<QQ", body, 0)
+                    note(_ChunkRef(pos, start, end, 9 + len(body)), msgs)
+            except _Damage as exc:
+                self.report.count("skipped_chunks", pos)
+                self.warn(f"{self.path}: {'chunk' if op == _CHUNK else 'record'} at byte {pos} is damaged: "
+                          f"{exc.reason}; skipped")
+        damage: _Damage | None = self._walk_damage
+        later = [r for r in past_damage or [] if damage is None or r.offset > damage.pos]
+        found_later = 0
+        for ref in later:
+            got = self._read_chunk(ref)
+            if got is not None:
+                found_later += 1
+                note(ref, got)
+        if damage is not None:
+            rep = self.report
+            rep.bytes_read = damage.pos
+            where = damage_place(self._fh, damage.pos, self._size)
+            if found_later:
+                rep.index_damaged = True
+                self.warn(f"{self.path}: the data section is damaged {where} ({damage.reason}); read everything "
+                          f"before it and {found_later} chunk(s) the index knows after it")
+            else:
+                rep.truncated = True
+                if not damage_known or not later:
+                    self.warn(f"{self.path}: log is truncated or damaged {where} ({damage.reason}); read everything "
+                              "before it")
+        lrn.chunks = sorted(refs, key=lambda r: r.offset)
+        lrn.counts = counts
+        for ch in lrn.channels.values():  # camera topics without a readable message have empty tables
+            if camera_kind(ch.msgtype):
+                entries.setdefault(ch.topic, [])
+        lrn.tables = {t: _table(e) for t, e in entries.items()}
 
     def close(self) -> None:
         self._fh.close()
+        if self._key is not None:
+            release(self._key)
+            self._key = None
 
     def _add_channel(self, c: Channel) -> ChannelInfo:
-        info = ChannelInfo(c.id, c.topic, c.message_encoding, self._schemas.get(c.schema_id), dict(c.metadata))
-        self._channels[c.id] = info
+        info = ChannelInfo(c.id, c.topic, c.message_encoding, self._l.schemas.get(c.schema_id), dict(c.metadata))
+        self._l.channels[c.id] = info
         return info
-
-    def _scan_channels(self) -> None:
-        for _ in self._sequential(None, None, None, want_messages=False):
-            pass
 
     # -- listing ----------------------------------------------------------------
     def channels(self) -> list[ChannelInfo]:
-        return list(self._channels.values())
+        return list(self._l.channels.values())
 
     def message_counts(self) -> dict[int, int] | None:
-        if self.summary is not None and self.summary.statistics is not None and self._indexed:
-            return dict(self.summary.statistics.channel_message_counts)
-        return None
+        lrn = self._l
+        if lrn.indexed:
+            if lrn.summary is not None and lrn.summary.statistics is not None:
+                return dict(lrn.summary.statistics.channel_message_counts)
+            return None
+        return dict(lrn.counts) if lrn.counts is not None else None
 
     def checksums(self) -> str:
-        if self.summary is not None and self._indexed and self.summary.chunk_indexes and not self._chunks_crc:
+        crcs = self._chunks_crc + ([] if self._l.indexed else self._l.crcs)
+        if self._l.indexed and not crcs:
             return "unknown"
-        if self._chunks_crc and all(self._chunks_crc):
+        if crcs and all(crcs):
             return "all"
-        if any(self._chunks_crc):
+        if any(crcs):
             return "some"
         return "none"
 
-    def topic_times(self, topic: str) -> Any:
-        """Log times of ``topic`` from the MessageIndex records the chunk index points to (no
-        chunk is decompressed); None when the index is not trusted or has no message indexes."""
-        import numpy as np
+    def frame_table(self, topic: str) -> FrameTable:
+        lrn = self._l
+        table = lrn.tables.get(topic)
+        if table is not None:
+            return table
+        if lrn.indexed:
+            why = self._index_tables()
+            if why:
+                self.report.index_damaged = True
+                self.warn(f"{self.path}: the message index is {why}: numbering frames from a scan of the data")
+                self._scan()
+                lrn.indexed = False
+                if lrn.report is not None:  # the next reader learns of it too
+                    lrn.report.merge(self.report)
+        return lrn.tables.setdefault(topic, FrameTable.concat([]))
 
-        if not self._indexed or self.summary is None:
-            return None
-        ids = {c.id for c in self._channels.values() if c.topic == topic}
-        parts: list[Any] = []
-        counts = self.message_counts() or {}
-        for ci in self.summary.chunk_indexes:
+    def _index_tables(self) -> str:
+        """Build every camera topic's frame table from the message indexes the chunk index points
+        to (no chunk is decompressed); "" when they are sound, else what is wrong with them."""
+        lrn = self._l
+        assert lrn.summary is not None
+        cams = {c.id: c.topic for c in lrn.channels.values() if camera_kind(c.msgtype)}
+        parts: dict[str, list[tuple[Any, Any, Any]]] = {t: [] for t in cams.values()}
+        found: dict[int, int] = {}
+        for ci in lrn.summary.chunk_indexes:
+            offsets_seen: set[int] = set()
             for cid, off in ci.message_index_offsets.items():
-                if cid not in ids:
+                if cid not in cams:
                     continue
                 try:
                     op, n = self._head(off)
                     body = self._fh.read(n) if op == _MESSAGE_INDEX and 6 <= n <= self._size else b""
-                    got_cid, rlen = struct.unpack_from("<HI", body, 0) if len(body) >= 6 else (-1, 0)
                 except _Damage:
-                    return None
+                    return f"unreadable at byte {off}"
+                got_cid, rlen = struct.unpack_from("<HI", body, 0) if len(body) >= 6 else (-1, 0)
                 if got_cid != cid or rlen % 16 or 6 + rlen > len(body):
-                    return None
-                parts.append(np.frombuffer(body, dtype="<u8", offset=6, count=rlen // 8)[0::2])
-        times = np.sort(np.concatenate(parts)).astype(np.int64) if parts else np.zeros(0, np.int64)
-        if counts and len(times) != sum(counts.get(i, 0) for i in ids):
-            return None  # the message indexes and the statistics disagree: no exact times
-        return times
+                    return f"damaged at byte {off}"
+                e = np.frombuffer(body, dtype="<u8", offset=6, count=rlen // 8).reshape(-1, 2).astype(np.int64)
+                times, inner = e[:, 0], e[:, 1]
+                if len(e) and (times.min() < ci.message_start_time or times.max() > ci.message_end_time
+                               or inner.min() < 0 or inner.max() >= ci.uncompressed_size
+                               or len(set(inner.tolist()) | offsets_seen) != len(offsets_seen) + len(e)):
+                    return f"inconsistent with its chunk at byte {ci.chunk_start_offset}"
+                offsets_seen |= set(inner.tolist())
+                found[cid] = found.get(cid, 0) + len(e)
+                parts[cams[cid]].append((times, np.full(len(e), ci.chunk_start_offset, np.int64), inner))
+        counts = self.message_counts()
+        if counts is not None and any(found.get(cid, 0) != counts.get(cid, 0) for cid in cams):
+            return "incomplete (its entries and the statistics disagree)"
+        lrn.tables.update({t: FrameTable.concat(p) for t, p in parts.items()})
+        return ""
 
     def _fill_time_range(self, info: LogInfo) -> None:
-        if self.summary is None or not self._indexed:
-            return
-        # per-topic ranges come from the chunk index only approximately; overall range is exact
-        st = self.summary.statistics
-        if st is not None and st.message_count:
-            info.start_ns, info.end_ns = st.message_start_time, st.message_end_time
+        lrn = self._l
         ranges: dict[int, list[int]] = {}
-        for ci in self.summary.chunk_indexes:
-            for cid in ci.message_index_offsets:
-                r = ranges.setdefault(cid, [ci.message_start_time, ci.message_end_time])
-                r[0] = min(r[0], ci.message_start_time)
-                r[1] = max(r[1], ci.message_end_time)
+        if lrn.indexed and lrn.summary is not None:
+            # per-topic ranges come from the chunk index only approximately; overall range is exact
+            st = lrn.summary.statistics
+            if st is not None and st.message_count:
+                info.start_ns, info.end_ns = st.message_start_time, st.message_end_time
+            for ci in lrn.summary.chunk_indexes:
+                for cid in ci.message_index_offsets:
+                    r = ranges.setdefault(cid, [ci.message_start_time, ci.message_end_time])
+                    r[0] = min(r[0], ci.message_start_time)
+                    r[1] = max(r[1], ci.message_end_time)
+        elif not lrn.indexed:
+            ranges = lrn.ranges
         for t in info.topics:
-            for c in self._channels.values():
+            for c in lrn.channels.values():
                 if c.topic == t.topic and c.id in ranges:
                     lo, hi = ranges[c.id]
                     t.start_ns = lo if t.start_ns is None else min(t.start_ns, lo)
@@ -389,28 +529,31 @@ class McapLog(LogReader):
     def _iter_messages(
         self, topics: set[str] | None, start_ns: int | None, end_ns: int | None, log_time_order: bool
     ) -> Iterator[RawMessage]:
-        ids = None if topics is None else {c.id for c in self._channels.values() if c.topic in topics}
-        if self._indexed:
-            assert self.summary is not None
+        lrn = self._l
+        ids = None if topics is None else {c.id for c in lrn.channels.values() if c.topic in topics}
+        if lrn.indexed:
+            assert lrn.summary is not None
             refs = [
                 _ChunkRef(ci.chunk_start_offset, ci.message_start_time, ci.message_end_time, ci.chunk_length)
-                for ci in self.summary.chunk_indexes
+                for ci in lrn.summary.chunk_indexes
                 if ids is None or not ci.message_index_offsets or ids & set(ci.message_index_offsets)
             ]
-            yield from self._chunked_messages(refs, ids, start_ns, end_ns, log_time_order)
-        elif self._chunks is not None:
-            yield from self._chunked_messages(self._chunks, ids, start_ns, end_ns, log_time_order)
         else:
-            yield from self._sequential(ids, start_ns, end_ns, want_messages=True)
+            refs = list(lrn.chunks or [])
+        yield from self._chunked_messages(refs, ids, start_ns, end_ns, log_time_order)
 
-    def _read_chunk(self, ref: _ChunkRef) -> list[Message] | None:
-        """Messages of the chunk at ``ref.offset`` (schemas and channels registered); None when it
-        is damaged (reported)."""
+    def _read_chunk(self, ref: _ChunkRef) -> list[tuple[int, Message]] | None:
+        """Messages of the chunk (or message record) at ``ref.offset``, each with its offset in the
+        chunk (schemas and channels registered); None when it is damaged (reported, once)."""
         pos = ref.offset
         try:
             op, n = self._head(pos)
-            if op != _CHUNK:
-                raise _Damage(pos, f"no chunk record at byte {pos} (opcode {op:#04x})")
+            if op != ref.op:
+                raise _Damage(pos, f"no {'chunk' if ref.op == _CHUNK else 'message'} record at byte {pos} "
+                                   f"(opcode {op:#04x})")
+            if op == _MESSAGE:
+                self._fh.seek(pos + 9)
+                return [(0, _parse(Message, self._fh.read(n), pos))]
             lengths = [n] + ([ref.index_length - 9] if ref.index_length and ref.index_length - 9 != n else [])
             err: _Damage | None = None
             for length in lengths:  # the record's own length first; the index's if that fails
@@ -428,23 +571,24 @@ class McapLog(LogReader):
             assert err is not None
             raise err
         except _Damage as exc:
-            self.report.skipped_chunks += 1
+            self.report.count("skipped_chunks", pos)
             self.warn(f"{self.path}: chunk at byte {pos} is damaged: {exc.reason}; "
                       f"skipped its messages (log time {ref.start}..{ref.end})")
             return None
 
-    def _absorb(self, records: list[Any]) -> list[Message]:
-        """Register the schemas and channels among ``records``; return their messages. A channel
-        record in the data wins over a summary that says otherwise (reported)."""
+    def _absorb(self, records: list[tuple[int, Any]]) -> list[tuple[int, Message]]:
+        """Register the schemas and channels among ``records``; return their messages (with their
+        offsets). A channel record in the data wins over a summary that says otherwise (reported)."""
+        lrn = self._l
         out = []
-        for r in records:
+        for at, r in records:
             if isinstance(r, Schema):
-                self._schemas.setdefault(r.id, _schema_info(r))
+                lrn.schemas.setdefault(r.id, _schema_info(r))
             elif isinstance(r, Channel):
-                if r.id not in self._data_channels:
-                    self._data_channels.add(r.id)
-                    old = self._channels.get(r.id)
-                    new = ChannelInfo(r.id, r.topic, r.message_encoding, self._schemas.get(r.schema_id),
+                if r.id not in lrn.data_channels:
+                    lrn.data_channels.add(r.id)
+                    old = lrn.channels.get(r.id)
+                    new = ChannelInfo(r.id, r.topic, r.message_encoding, lrn.schemas.get(r.schema_id),
                                       dict(r.metadata))
                     if old is not None and (old.topic, old.message_encoding, old.schema) != (
                             new.topic, new.message_encoding, new.schema):
@@ -452,18 +596,18 @@ class McapLog(LogReader):
                         self.warn(f"{self.path}: the summary describes channel {r.id} as {old.topic!r}, the data "
                                   f"as {r.topic!r}: using the data's")
                     if old is None or old != new:
-                        self._channels[r.id] = new
+                        lrn.channels[r.id] = new
             elif isinstance(r, Message):
-                out.append(r)
+                out.append((at, r))
         return out
 
-    def _raw(self, m: Message) -> RawMessage | None:
-        ch = self._channels.get(m.channel_id)
+    def _raw(self, m: Message, where: tuple[int, int]) -> RawMessage | None:
+        ch = self._l.channels.get(m.channel_id)
         if ch is None:
-            self.report.bad_messages += 1
-            self.warn(f"{self.path}: message on unknown channel id {m.channel_id} at log time {m.log_time}: skipped")
+            if self.report.count("bad_messages", ("unknown channel", where)):
+                self.warn(f"{self.path}: message on unknown channel id {m.channel_id} at log time {m.log_time}: skipped")
             return None
-        return RawMessage(ch, m.log_time, m.publish_time, m.sequence, bytes(m.data))
+        return RawMessage(ch, m.log_time, m.publish_time, m.sequence, bytes(m.data), where)
 
     def _chunked_messages(
         self, refs: list[_ChunkRef], ids: set[int] | None, start_ns: int | None, end_ns: int | None,
@@ -473,27 +617,28 @@ class McapLog(LogReader):
         if not log_time_order:
             chunks.sort(key=lambda c: c.offset)
             for ref in chunks:
-                for m in self._read_chunk(ref) or []:
+                for at, m in self._read_chunk(ref) or []:
                     if self._keep(m, ids, start_ns, end_ns):
-                        r = self._raw(m)
+                        r = self._raw(m, (ref.offset, at))
                         if r is not None:
                             yield r
             return
         chunks.sort(key=lambda c: (c.start, c.offset))
-        heap: list[tuple[int, int, int, Message]] = []
+        heap: list[tuple[int, int, int, Message, tuple[int, int]]] = []
         order = 0
         i = 0
         while i < len(chunks) or heap:
             # load every chunk that may hold a message earlier than the heap's head
             while i < len(chunks) and (not heap or chunks[i].start <= heap[0][0]):
-                for m in self._read_chunk(chunks[i]) or []:
+                ref = chunks[i]
+                for at, m in self._read_chunk(ref) or []:
                     if self._keep(m, ids, start_ns, end_ns):
-                        heapq.heappush(heap, (m.log_time, i, order, m))
+                        heapq.heappush(heap, (m.log_time, i, order, m, (ref.offset, at)))
                         order += 1
                 i += 1
             if heap:
-                m = heapq.heappop(heap)[3]
-                r = self._raw(m)
+                _, _, _, m, where = heapq.heappop(heap)
+                r = self._raw(m, where)
                 if r is not None:
                     yield r
 
@@ -505,10 +650,11 @@ class McapLog(LogReader):
             and (end_ns is None or m.log_time < end_ns)
         )
 
-    def _records(self, kinds: set[int]) -> Iterator[tuple[int, int, bytes]]:
+    def _walk_records(self, kinds: set[int]) -> Iterator[tuple[int, int, bytes]]:
         """(offset, opcode, body) of the top-level records of the data section whose opcode is in
-        ``kinds`` (other bodies are skipped by seeking), up to DataEnd/Footer; damage ends it with a
-        warning that says where (a zero-filled tail from where the zeros start)."""
+        ``kinds`` (other bodies are skipped by seeking), up to DataEnd/Footer; damage ends it and
+        is left in ``self._walk_damage`` (None when the walk reached the end cleanly)."""
+        self._walk_damage: _Damage | None = None
         pos = len(MAGIC)
         size = self._size
         try:
@@ -529,51 +675,18 @@ class McapLog(LogReader):
                     yield pos, op, self._fh.read(n)
                 pos += 9 + n
         except _Damage as exc:
+            self._walk_damage = exc
+
+    def _records(self, kinds: set[int]) -> Iterator[tuple[int, int, bytes]]:
+        """:meth:`_walk_records`; damage is reported (a zero-filled tail from where the zeros start)."""
+        yield from self._walk_records(kinds)
+        exc = self._walk_damage
+        if exc is not None:
             rep = self.report
             rep.truncated = True
-            if not self._damage_told:
-                self._damage_told = True
-                rep.bytes_read = exc.pos
-                self.warn(f"{self.path}: log is truncated or damaged {damage_place(self._fh, exc.pos, size)} "
-                          f"({exc.reason}); read everything before it")
-
-    def _sequential(
-        self, ids: set[int] | None, start_ns: int | None, end_ns: int | None, want_messages: bool
-    ) -> Iterator[RawMessage]:
-        """File-order scan up to the damage; chunks' messages merged into log-time order."""
-
-        def groups() -> Iterator[list[tuple[int, RawMessage]]]:
-            for pos, op, body in self._records({_SCHEMA, _CHANNEL, _MESSAGE, _CHUNK}):
-                try:
-                    if op == _SCHEMA:
-                        self._absorb([_parse(Schema, body, pos)])
-                    elif op == _CHANNEL:
-                        self._absorb([_parse(Channel, body, pos)])
-                    elif op == _MESSAGE:
-                        if want_messages:
-                            yield self._group([_parse(Message, body, pos)], ids, start_ns, end_ns)
-                    else:
-                        recs, checked = _chunk_records(body, pos, self.validate_crcs)
-                        self._chunks_crc.append(checked)
-                        msgs = self._absorb(recs)
-                        if want_messages:
-                            yield self._group(msgs, ids, start_ns, end_ns)
-                except _Damage as exc:
-                    self.report.skipped_chunks += 1
-                    self.warn(f"{self.path}: {'chunk' if op == _CHUNK else 'record'} at byte {pos} is damaged: "
-                              f"{exc.reason}; skipped")
-
-        yield from merge_groups(groups())
-
-    def _group(self, msgs: list[Message], ids: set[int] | None, start_ns: int | None,
-               end_ns: int | None) -> list[tuple[int, RawMessage]]:
-        out = []
-        for m in msgs:
-            if self._keep(m, ids, start_ns, end_ns):
-                r = self._raw(m)
-                if r is not None:
-                    out.append((m.log_time, r))
-        return out
+            rep.bytes_read = exc.pos if rep.bytes_read is None else min(rep.bytes_read, exc.pos)
+            self.warn(f"{self.path}: log is truncated or damaged {damage_place(self._fh, exc.pos, self._size)} "
+                      f"({exc.reason}); read everything before it")
 
     # -- metadata / attachments ----------------------------------------------------
     def metadata(self) -> Iterator[tuple[str, dict[str, str]]]:
@@ -581,8 +694,8 @@ class McapLog(LogReader):
             try:
                 m = _parse(Metadata, body, pos)
             except _Damage as exc:
-                self.report.bad_messages += 1
-                self.warn(f"{self.path}: metadata record at byte {pos} is damaged ({exc.reason}); skipped")
+                if self.report.count("bad_messages", ("metadata", pos)):
+                    self.warn(f"{self.path}: metadata record at byte {pos} is damaged ({exc.reason}); skipped")
                 continue
             yield m.name, dict(m.metadata)
 
@@ -591,8 +704,12 @@ class McapLog(LogReader):
             try:
                 a = _parse(McapAttachment, body, pos)
             except _Damage as exc:
-                self.report.bad_messages += 1
-                self.warn(f"{self.path}: attachment record at byte {pos} is damaged ({exc.reason}); skipped")
+                if self.report.count("bad_messages", ("attachment", pos)):
+                    self.warn(f"{self.path}: attachment record at byte {pos} is damaged ({exc.reason}); skipped")
                 continue
             yield Attachment(a.name, a.media_type, a.log_time, a.create_time, bytes(a.data))
 
+
+def _table(entries: list[tuple[int, int, int]]) -> FrameTable:
+    a = np.asarray(entries, dtype=np.int64).reshape(-1, 3)
+    return FrameTable(a[:, 0], a[:, 1], a[:, 2])

@@ -5,13 +5,17 @@ decompresses each to no more than the size it declares, and merges their message
 log-time order. The bag's index (read with rosbags) gives message counts, per-topic times and the
 connection definitions, but only when it proves itself against a walk over the file's record
 headers (chunk positions, connection and chunk counts in the bag header, counts per chunk); an
-index that does not is reported and the connections come from the data. Damage inside the file
-is skipped to the next chunk the index or the walk knows; an interrupted recording (no index, a
-cut, a zero-filled tail) is read up to the damage and reported.
+index that does not is reported and the data is **scanned once** when the bag is opened: the
+connections, every chunk's time range, the message counts and the frame tables
+(:mod:`memlog.io.frame_table`) then come from that scan, kept for the next reader of the same
+file (:mod:`memlog.io._opened`), and later reads go only to the chunks a time window needs.
+Damage inside the file is skipped to the next chunk the index or the walk knows; an interrupted
+recording (no index, a cut, a zero-filled tail) is read up to the damage and reported.
 """
 
 from __future__ import annotations
 
+import copy
 import os
 import struct
 from collections.abc import Iterator
@@ -19,10 +23,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
+
 from memlog.io._damage import check_regular_file, damage_place, decompress, merge_groups
+from memlog.io._opened import counted_scan, file_key, learned, release
 from memlog.io._rosbags import msgdef_text
 from memlog.io.base import LogReader
-from memlog.io.records import ChannelInfo, RawMessage, SchemaInfo
+from memlog.io.camera import camera_kind
+from memlog.io.frame_table import FrameTable
+from memlog.io.records import ChannelInfo, RawMessage, ReadReport, SchemaInfo
 from memlog.io.types import LogInfo
 
 __all__ = ["Ros1BagLog"]
@@ -102,7 +111,6 @@ class _Ros1Scanner:
     def __init__(self, path: str, owner: LogReader, size: int) -> None:
         self.path, self.owner, self.size = path, owner, size
         self.resync: list[int] = []  # chunk positions known from the index, to skip damage with
-        self._chans: dict[int, ChannelInfo] | None = None
 
     @staticmethod
     def _record(buf: IO[bytes] | _BytesReader, pos: int, end: int, skip_data: bool = False) -> tuple[dict[str, bytes], bytes, int]:
@@ -161,7 +169,7 @@ class _Ros1Scanner:
                 sk.damage = exc
         return sk
 
-    def _chunk_records(self, fields: dict[str, bytes], data: bytes, pos: int) -> Iterator[tuple[dict[str, bytes], bytes]]:
+    def _chunk_records(self, fields: dict[str, bytes], data: bytes, pos: int) -> Iterator[tuple[int, dict[str, bytes], bytes]]:
         comp = fields.get("compression", b"none").decode(errors="replace")
         size = _u32(fields, "size", pos)
         if comp == "none" and size != len(data):
@@ -172,48 +180,62 @@ class _Ros1Scanner:
         buf = _BytesReader(raw)
         at = 0
         while at < len(raw):
-            f2, d2, at = self._record(buf, at, len(raw))
-            yield f2, d2
+            f2, d2, nxt = self._record(buf, at, len(raw))
+            yield at, f2, d2
+            at = nxt
 
-    def walk(self, chunks: set[int] | None = None) -> Iterator[tuple[int, dict[str, bytes], bytes]]:
-        """(chunk number, fields, data) of message and connection records, chunks expanded, in
-        file order (records outside chunks get chunk number -1). Damage is reported; the walk
-        goes on at the next chunk the index knows, or stops."""
+    def walk(self, chunks: set[int] | None = None) -> Iterator[tuple[int, int, dict[str, bytes], bytes]]:
+        """(container, offset, fields, data) of message and connection records, chunks expanded,
+        in file order: the container is the chunk's file position and the offset the record's
+        position in its uncompressed data (a record outside chunks: its own position, offset -1).
+        ``chunks``: read only the records at these positions (found by the index or the scan: no
+        other byte of the file is read); else every record from the start. Damage is reported;
+        the walk goes on at the next chunk the index knows, or stops."""
         rep = self.owner.report
         with open(self.path, "rb") as fh:
+            if chunks is not None:
+                for pos in sorted(chunks):
+                    fh.seek(pos)
+                    try:
+                        fields, data, _ = self._record(fh, pos, self.size)
+                    except _Bad as exc:
+                        if rep.count("skipped_chunks", pos):
+                            self.owner.warn(f"{self.path}: record at byte {pos} is damaged ({exc.reason}); skipped")
+                        continue
+                    yield from self._expand(pos, fields, data)
+                return
             pos = len(_MAGIC)
-            n_chunk = 0
             while pos < self.size:
                 fh.seek(pos)
                 try:
                     fields, data, nxt = self._record(fh, pos, self.size)
                 except _Bad as exc:
                     later = [p for p in self.resync if p > pos]
-                    if not rep.truncated:
-                        rep.truncated = True
-                        rep.bytes_read = exc.pos
-                        left = f"; going on at the next chunk (byte {later[0]})" if later else "; read everything before it"
-                        self.owner.warn(f"{self.path}: bag is truncated or damaged {damage_place(fh, exc.pos, self.size)}"
-                                        f" ({exc.reason}){left}")
+                    rep.truncated = True
+                    rep.bytes_read = exc.pos if rep.bytes_read is None else min(rep.bytes_read, exc.pos)
+                    left = f"; going on at the next chunk (byte {later[0]})" if later else "; read everything before it"
+                    self.owner.warn(f"{self.path}: bag is truncated or damaged {damage_place(fh, exc.pos, self.size)}"
+                                    f" ({exc.reason}){left}")
                     if not later:
                         return
                     pos = later[0]
                     continue
-                op = fields["op"][0]
-                if op == _OP_CHUNK and chunks is not None and pos not in chunks:
-                    pass  # the trusted index says it holds none of the wanted connections
-                elif op == _OP_CHUNK:
-                    n_chunk += 1
-                    try:
-                        for f2, d2 in self._chunk_records(fields, data, pos):
-                            yield n_chunk, f2, d2
-                    except (_Bad, ValueError, OSError, EOFError) as exc:
-                        rep.skipped_chunks += 1
-                        why = exc.reason if isinstance(exc, _Bad) else f"{type(exc).__name__}: {exc}"
-                        self.owner.warn(f"{self.path}: chunk at byte {pos} is damaged ({why}); skipped the rest of it")
-                elif op in (_OP_MSG, _OP_CONN):
-                    yield -1, fields, data
+                yield from self._expand(pos, fields, data)
                 pos = nxt
+
+    def _expand(self, pos: int, fields: dict[str, bytes], data: bytes) -> Iterator[tuple[int, int, dict[str, bytes], bytes]]:
+        """The message and connection records of the record at ``pos`` (a chunk's, expanded)."""
+        op = fields["op"][0]
+        if op == _OP_CHUNK:
+            try:
+                for at, f2, d2 in self._chunk_records(fields, data, pos):
+                    yield pos, at, f2, d2
+            except (_Bad, ValueError, OSError, EOFError) as exc:
+                self.owner.report.count("skipped_chunks", pos)
+                why = exc.reason if isinstance(exc, _Bad) else f"{type(exc).__name__}: {exc}"
+                self.owner.warn(f"{self.path}: chunk at byte {pos} is damaged ({why}); skipped the rest of it")
+        elif op in (_OP_MSG, _OP_CONN):
+            yield pos, -1, fields, data
 
     def conn(self, fields: dict[str, bytes], data: bytes, pos: int = 0) -> ChannelInfo:
         cid = _u32(fields, "conn", pos)
@@ -230,34 +252,23 @@ class _Ros1Scanner:
         schema = SchemaInfo(msgtype, "ros1msg", d.get("message_definition", b""))
         return ChannelInfo(cid, topic.decode(errors="replace"), "ros1", schema, meta)
 
-    def channels(self) -> dict[int, ChannelInfo]:
-        """Connections found in the data (a full pass; used when the index is not trusted)."""
-        if self._chans is None:
-            self._chans = {}
-            for _n, fields, data in self.walk():
-                if fields["op"][0] == _OP_CONN:
-                    try:
-                        ch = self.conn(fields, data)
-                    except _Bad:
-                        continue
-                    self._chans.setdefault(ch.id, ch)
-        return self._chans
-
     def messages(self, chans: dict[int, ChannelInfo], topics: set[str] | None, start_ns: int | None,
-                 end_ns: int | None, chunks: set[int] | None = None) -> Iterator[RawMessage]:
-        """Messages in log-time order (chunks merged)."""
+                 end_ns: int | None, chunks: set[int] | None = None, *,
+                 correct_index: bool = True) -> Iterator[RawMessage]:
+        """Messages in log-time order (chunks merged). ``correct_index``: the connections come
+        from the index, and a connection record in the data that says otherwise wins (reported)."""
         rep = self.owner.report
 
         def groups() -> Iterator[list[tuple[int, RawMessage]]]:
             group: list[tuple[int, RawMessage]] = []
             current = None
-            for n, fields, data in self.walk(chunks):
-                if n != current or n == -1:
+            for container, at, fields, data in self.walk(chunks):
+                if container != current or at < 0:
                     yield group
-                    group, current = [], n
+                    group, current = [], container
                 op = fields["op"][0]
                 if op == _OP_CONN:
-                    if self._chans is None:  # trusted index: the data's connection record wins
+                    if correct_index:  # trusted index: the data's connection record wins
                         try:
                             ch = self.conn(fields, data)
                         except _Bad:
@@ -276,18 +287,19 @@ class _Ros1Scanner:
                     cid = _u32(fields, "conn", 0)
                     t = _time(fields, "time", 0)
                 except _Bad as exc:
-                    rep.bad_messages += 1
-                    self.owner.warn(f"{self.path}: message record in chunk {n} is damaged ({exc.reason}); skipped")
+                    if rep.count("bad_messages", (container, at)):
+                        self.owner.warn(f"{self.path}: message record at byte {at} of the chunk at byte {container} "
+                                        f"is damaged ({exc.reason}); skipped")
                     continue
                 found = chans.get(cid)
                 if found is None:
-                    rep.bad_messages += 1
-                    self.owner.warn(f"{self.path}: message on unknown connection {cid} at log time {t}: skipped")
+                    if rep.count("bad_messages", (container, at)):
+                        self.owner.warn(f"{self.path}: message on unknown connection {cid} at log time {t}: skipped")
                     continue
                 if (topics is not None and found.topic not in topics) or (start_ns is not None and t < start_ns) or (
                         end_ns is not None and t >= end_ns):
                     continue
-                group.append((t, RawMessage(found, t, t, 0, data)))
+                group.append((t, RawMessage(found, t, t, 0, data, (container, max(at, 0)))))
             yield group
 
         yield from merge_groups(groups())
@@ -310,6 +322,27 @@ class _BytesReader:
         return self._at
 
 
+@dataclass
+class _Learned:
+    """What opening (and scanning) one bag learned; shared by its readers in a process."""
+
+    said: set[str] = field(default_factory=set)
+    chans: dict[int, ChannelInfo] = field(default_factory=dict)
+    trusted: bool = False  # the bag's index proved itself and drives the reads
+    resync: list[int] = field(default_factory=list)
+    counts: dict[int, int] | None = None
+    # chunk position -> (first, last log time, connection ids): the index's or the scan's
+    chunks: dict[int, tuple[int, int, frozenset[int]]] = field(default_factory=dict)
+    entries: dict[int, list[tuple[int, int, int]]] = field(default_factory=dict)  # index: conn -> (time, chunk, offset)
+    ranges: dict[int, list[int]] = field(default_factory=dict)  # log-time range per connection
+    time_range: tuple[int, int] | None = None
+    tables: dict[str, FrameTable] = field(default_factory=dict)
+    report: ReadReport | None = None
+
+    def close(self) -> None:
+        pass
+
+
 class Ros1BagLog(LogReader):
     """A ROS 1 bag (v2.0). Messages keep their ROS 1 serialization."""
 
@@ -320,16 +353,27 @@ class Ros1BagLog(LogReader):
         super().__init__(path)
         size = check_regular_file(self.path).st_size
         self._scan = _Ros1Scanner(self.path, self, size)
-        self._reader: Any = None
-        self._chans: dict[int, ChannelInfo] = {}
+        self._key: Any = None
+        key = file_key("ros1bag", self.path)
+        self._l, new = learned(key, self._learn)
+        self._key = key
+        self._said = self._l.said
+        self._scan.resync = self._l.resync
+        if not new and self._l.report is not None:
+            self._learned_before(self._l.report)
+
+    def _learn(self) -> _Learned:
+        self._l = lrn = _Learned()
+        self._said = lrn.said
         sk = self._scan.skeleton()
-        problems = self._open_index(sk)
-        known = sorted(ci.pos for ci in getattr(self._reader, "chunk_infos", []) if isinstance(ci.pos, int))
-        self._scan.resync = sorted(set(sk.chunks) | set(known))
+        reader, problems = self._open_index(sk)
+        known = sorted(ci.pos for ci in getattr(reader, "chunk_infos", []) if isinstance(ci.pos, int))
+        lrn.resync = self._scan.resync = sorted(set(sk.chunks) | set(known))
+        size = self._scan.size
         if sk.damage is not None:
             self.report.truncated = True
             self.report.bytes_read = sk.damage.pos
-            later = [p for p in self._scan.resync if p > sk.damage.pos]
+            later = [p for p in lrn.resync if p > sk.damage.pos]
             self.warn(f"{self.path}: bag is truncated or damaged {damage_place_s(self, sk.damage.pos)} "
                       f"({sk.damage.reason}); the index is not used: reading the records before it"
                       + (f" and the {len(later)} chunk(s) the index knows after it" if later else ""))
@@ -340,33 +384,97 @@ class Ros1BagLog(LogReader):
         elif problems is not None:
             self.report.index_damaged = True
             self.warn(f"{self.path}: bag index unusable ({problems}); reading the records themselves")
-        if problems is None and sk.damage is None and sk.index_start is not None and self._reader is not None:
-            for c in self._reader.connections:
-                self._chans[c.id] = self._channel(c)
-            return
-        if self._reader is not None:
-            self._reader.close()
-            self._reader = None
-        self._chans = self._scan.channels()
+        try:
+            if problems is None and sk.damage is None and sk.index_start is not None and reader is not None:
+                self._from_index(reader)
+            else:
+                self._scan_data()
+        finally:
+            if reader is not None:
+                reader.close()
+        lrn.report = copy.deepcopy(self.report)
+        return lrn
 
-    def _open_index(self, sk: _Skeleton) -> str | None:
-        """Open the index with rosbags; None when it matches the walk, else why not."""
+    def _from_index(self, reader: Any) -> None:
+        """What the trusted index says: connections, counts, chunks and every message's place."""
+        lrn = self._l
+        lrn.trusted = True
+        for c in reader.connections:
+            lrn.chans[c.id] = self._channel(c)
+        lrn.counts = {c.id: c.msgcount for c in reader.connections}
+        lrn.chunks = {ci.pos: (ci.start_time, ci.end_time, frozenset(ci.connection_counts))
+                      for ci in reader.chunk_infos}
+        lrn.entries = {cid: [(e.time, e.chunk_pos, e.offset) for e in entries]
+                       for cid, entries in reader.indexes.items()}
+        if reader.message_count:
+            lrn.time_range = (reader.start_time, reader.end_time - 1)
+        for cid, entries in lrn.entries.items():
+            if entries:
+                times = [t for t, _, _ in entries]
+                lrn.ranges[cid] = [min(times), max(times)]
+        by_topic: dict[str, list[tuple[int, int, int]]] = {}
+        for cid, ch in lrn.chans.items():
+            if camera_kind(ch.msgtype):
+                by_topic.setdefault(ch.topic, []).extend(lrn.entries.get(cid, []))
+        lrn.tables = {t: _table(e) for t, e in by_topic.items()}
+
+    def _scan_data(self) -> None:
+        """The one scan of an unindexed or damaged bag: connections, every readable message's
+        place (frame tables), counts and the time range of every chunk."""
+        counted_scan(os.path.realpath(self.path))
+        lrn = self._l
+        counts: dict[int, int] = {}
+        by_topic: dict[str, list[tuple[int, int, int]]] = {}
+        for container, at, fields, data in self._scan.walk():
+            op = fields["op"][0]
+            if op == _OP_CONN:
+                try:
+                    ch = self._scan.conn(fields, data)
+                except _Bad:
+                    continue
+                lrn.chans.setdefault(ch.id, ch)
+                continue
+            try:
+                cid = _u32(fields, "conn", 0)
+                t = _time(fields, "time", 0)
+            except _Bad:
+                continue  # reported when the messages are read
+            ch = lrn.chans.get(cid)
+            if ch is None:
+                continue
+            counts[cid] = counts.get(cid, 0) + 1
+            r = lrn.ranges.setdefault(cid, [t, t])
+            r[0], r[1] = min(r[0], t), max(r[1], t)
+            lo, hi, ids = lrn.chunks.get(container, (t, t, frozenset()))
+            lrn.chunks[container] = (min(lo, t), max(hi, t + 1), ids | {cid})
+            if camera_kind(ch.msgtype):
+                by_topic.setdefault(ch.topic, []).append((t, container, max(at, 0)))
+        lrn.counts = counts
+        if lrn.ranges:
+            lrn.time_range = (min(r[0] for r in lrn.ranges.values()), max(r[1] for r in lrn.ranges.values()))
+        for ch in lrn.chans.values():
+            if camera_kind(ch.msgtype):
+                by_topic.setdefault(ch.topic, [])
+        lrn.tables = {t: _table(e) for t, e in by_topic.items()}
+
+    def _open_index(self, sk: _Skeleton) -> tuple[Any, str | None]:
+        """The index opened with rosbags (None when it does not open) and None when it matches
+        the walk, else why not."""
         from rosbags.rosbag1 import Reader
 
         try:
-            self._reader = Reader(Path(self.path))
-            self._reader.open()
+            reader = Reader(Path(self.path))
+            reader.open()
         except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds on a damaged index
-            self._reader = None
-            return f"{type(exc).__name__}: {exc}"
+            return None, f"{type(exc).__name__}: {exc}"
         hdr = sk.header or {}
         try:
             index_pos = struct.unpack("<Q", hdr.get("index_pos", b""))[0]
             conn_count = _u32(hdr, "conn_count", 0)
             chunk_count = _u32(hdr, "chunk_count", 0)
         except (struct.error, _Bad):
-            return "the bag header's fields are damaged"
-        infos = getattr(self._reader, "chunk_infos", [])
+            return reader, "the bag header's fields are damaged"
+        infos = getattr(reader, "chunk_infos", [])
         problems = []
         if conn_count != sk.index_conns or chunk_count != sk.chunk_infos:
             problems.append(f"the bag header counts {conn_count} connections and {chunk_count} chunks, the index "
@@ -375,10 +483,10 @@ class Ros1BagLog(LogReader):
             problems.append(f"the bag header puts the index at byte {index_pos}, it starts at {sk.index_start}")
         if sorted(ci.pos for ci in infos) != sk.chunks:
             problems.append(f"the index lists {len(infos)} chunks, the file holds {len(sk.chunks)}")
-        indexed = sum(len(v) for v in getattr(self._reader, "indexes", {}).values())
+        indexed = sum(len(v) for v in getattr(reader, "indexes", {}).values())
         if sum(sum(ci.connection_counts.values()) for ci in infos) != indexed:
             problems.append("the chunk infos and the index data disagree on message counts")
-        return "; ".join(problems) or None
+        return reader, "; ".join(problems) or None
 
     @staticmethod
     def _channel(c: Any) -> ChannelInfo:
@@ -393,42 +501,42 @@ class Ros1BagLog(LogReader):
         return ChannelInfo(c.id, c.topic, "ros1", schema, meta)
 
     def close(self) -> None:
-        if self._reader is not None:
-            self._reader.close()
-            self._reader = None
+        if self._key is not None:
+            release(self._key)
+            self._key = None
 
     def channels(self) -> list[ChannelInfo]:
-        return list(self._chans.values())
+        return list(self._l.chans.values())
 
     def message_counts(self) -> dict[int, int] | None:
-        if self._reader is None:
-            return None
-        return {c.id: c.msgcount for c in self._reader.connections}
+        return dict(self._l.counts) if self._l.counts is not None else None
 
-    def topic_times(self, topic: str) -> Any:
-        """Log times of ``topic`` from the bag's index data records (no chunk is read)."""
-        import numpy as np
-
-        if self._reader is None:
-            return None
-        times = [e.time for c in self._reader.connections if c.topic == topic for e in self._reader.indexes.get(c.id, ())]
-        return np.sort(np.asarray(times, dtype=np.int64))
+    def frame_table(self, topic: str) -> FrameTable:
+        return self._l.tables.setdefault(topic, _table([]))
 
     def _fill_time_range(self, info: LogInfo) -> None:
-        if self._reader is not None and self._reader.message_count:
-            info.start_ns, info.end_ns = self._reader.start_time, self._reader.end_time - 1
+        lrn = self._l
+        if lrn.time_range is not None:
+            info.start_ns, info.end_ns = lrn.time_range
+        for t in info.topics:
+            for c in lrn.chans.values():
+                if c.topic == t.topic and c.id in lrn.ranges:
+                    lo, hi = lrn.ranges[c.id]
+                    t.start_ns = lo if t.start_ns is None else min(t.start_ns, lo)
+                    t.end_ns = hi if t.end_ns is None else max(t.end_ns, hi)
 
     def _iter_messages(
         self, topics: set[str] | None, start_ns: int | None, end_ns: int | None, log_time_order: bool
     ) -> Iterator[RawMessage]:
-        full = self._reader is not None and start_ns is None and end_ns is None
+        lrn = self._l
+        full = lrn.trusted and start_ns is None and end_ns is None
         seen: list[tuple[int, int]] = []
         chunks = None
-        if self._reader is not None and (topics is not None or start_ns is not None or end_ns is not None):
-            ids = {c.id for c in self._chans.values() if topics is None or c.topic in topics}
-            chunks = {ci.pos for ci in self._reader.chunk_infos if ids & set(ci.connection_counts)
-                      and (start_ns is None or ci.end_time > start_ns) and (end_ns is None or ci.start_time < end_ns)}
-        for m in self._scan.messages(self._chans, topics, start_ns, end_ns, chunks):
+        if topics is not None or start_ns is not None or end_ns is not None:
+            ids = {c.id for c in lrn.chans.values() if topics is None or c.topic in topics}
+            chunks = {pos for pos, (lo, hi, conns) in lrn.chunks.items() if ids & conns
+                      and (start_ns is None or hi > start_ns) and (end_ns is None or lo < end_ns)}
+        for m in self._scan.messages(lrn.chans, topics, start_ns, end_ns, chunks, correct_index=lrn.trusted):
             if full:
                 seen.append((m.channel.id, m.log_time))
             yield m
@@ -439,13 +547,19 @@ class Ros1BagLog(LogReader):
         """After a full read: the index's (connection, time) entries must be the data's."""
         from collections import Counter
 
-        ids = {c.id for c in self._chans.values() if topics is None or c.topic in topics}
-        index = Counter((cid, e.time) for cid, entries in self._reader.indexes.items() if cid in ids for e in entries)
+        lrn = self._l
+        ids = {c.id for c in lrn.chans.values() if topics is None or c.topic in topics}
+        index = Counter((cid, t) for cid, entries in lrn.entries.items() if cid in ids for t, _, _ in entries)
         if index != Counter(seen):
             self.report.index_damaged = True
             self.warn(f"{self.path}: the bag's index data records do not match its messages "
                       f"({sum((index - Counter(seen)).values())} index entries have no such message); "
                       "the messages were read from the data")
+
+
+def _table(entries: list[tuple[int, int, int]]) -> FrameTable:
+    a = np.asarray(entries, dtype=np.int64).reshape(-1, 3)
+    return FrameTable(a[:, 0], a[:, 1], a[:, 2])
 
 
 def damage_place_s(log: Ros1BagLog, pos: int) -> str:

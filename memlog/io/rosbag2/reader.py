@@ -13,12 +13,18 @@ its own, so a damaged or foreign file costs only its own messages:
 * an ``.mcap`` file is read by :class:`memlog.io.mcap.McapLog` with all its damage handling;
 * ``NAME.zstd`` (file-compressed storage) is decompressed to a temporary file first.
 
+What opening learned (the row index of every ``.db3``, temporary copies, decompressed files,
+the channels) is kept for the next reader of the same bag (:mod:`memlog.io._opened`): a bag is
+decompressed, copied or indexed once per process, not once per reader. Frame indices come from
+the rows and the MCAP files' frame tables (:mod:`memlog.io.frame_table`).
+
 Files merge in log-time order. A metadata.yaml that is missing, does not parse or disagrees with
 the storage (files, topics, types, counts, compression) is reported as a damaged index.
 """
 
 from __future__ import annotations
 
+import copy
 import heapq
 import os
 import shutil
@@ -26,12 +32,17 @@ import sqlite3
 import struct
 import tempfile
 from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
+
 from memlog.errors import LogReadError
 from memlog.io._damage import MAX_CHUNK_BYTES, check_regular_file
+from memlog.io._opened import file_key, learned, release
 from memlog.io.base import LogReader
+from memlog.io.frame_table import FrameTable
 from memlog.io.records import ChannelInfo, RawMessage, ReadReport, SchemaInfo
 from memlog.io.types import LogInfo
 
@@ -242,6 +253,32 @@ def _read_metadata(d: Path) -> tuple[dict[str, Any] | None, str]:
         return None, f"metadata.yaml does not parse ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
 
 
+_SRC_BITS = 48  # a frame table container: (source << 48) | row id or chunk offset
+
+
+@dataclass
+class _Learned:
+    """What opening one bag learned; shared by its readers in a process (it owns the sqlite
+    connections and the temporary files)."""
+
+    said: set[str] = field(default_factory=set)
+    dbs: list[_Db3] = field(default_factory=list)
+    mcap_files: list[Path] = field(default_factory=list)
+    tmps: list[IO[bytes]] = field(default_factory=list)
+    chans: dict[int, ChannelInfo] = field(default_factory=dict)
+    gid: dict[tuple[int, int], int] = field(default_factory=dict)  # (source, local id) -> channel id here
+    by_topic: dict[tuple[str, str], int] = field(default_factory=dict)
+    tables: dict[str, FrameTable] = field(default_factory=dict)
+    report: ReadReport | None = None
+
+    def close(self) -> None:
+        for db in self.dbs:
+            db.close()
+        for tmp in self.tmps:
+            tmp.close()
+        self.dbs, self.tmps = [], []
+
+
 class Ros2BagLog(LogReader):
     """A ROS 2 bag directory (sqlite3 or mcap storage). Messages keep their CDR bytes."""
 
@@ -250,13 +287,42 @@ class Ros2BagLog(LogReader):
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         super().__init__(path)
-        d = Path(self.path)
-        self._dbs: list[_Db3] = []
         self._mcaps: list[LogReader] = []
-        self._tmps: list[IO[bytes]] = []
-        self._chans: dict[int, ChannelInfo] = {}
-        self._gid: dict[tuple[int, int], int] = {}  # (source, local id) -> channel id here
-        self._by_topic: dict[tuple[str, str], int] = {}
+        self._key: Any = None
+        key = file_key("ros2bag", self.path)
+        try:
+            self._l, new = learned(key, self._learn)
+            self._key = key
+            self._said = self._l.said
+            if not new:
+                if self._l.report is not None:
+                    self._learned_before(self._l.report)
+                for f in self._l.mcap_files:
+                    self._attach_mcap(f)
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def _dbs(self) -> list[_Db3]:
+        return self._l.dbs
+
+    @property
+    def _chans(self) -> dict[int, ChannelInfo]:
+        return self._l.chans
+
+    @property
+    def _gid(self) -> dict[tuple[int, int], int]:
+        return self._l.gid
+
+    @property
+    def _by_topic(self) -> dict[tuple[str, str], int]:
+        return self._l.by_topic
+
+    def _learn(self) -> _Learned:
+        self._l = lrn = _Learned()
+        self._said = lrn.said
+        d = Path(self.path)
         meta, why = _read_metadata(d)
         files = self._storage_files(d, meta)
         failed = []
@@ -269,13 +335,17 @@ class Ros2BagLog(LogReader):
                     msg = str(exc) if isinstance(exc, LogReadError) else f"{f}: {exc}"
                     failed.append(msg)
                     self.warn(f"{msg}; the bag goes on without this file")
-            if not self._dbs and not self._mcaps:
+            if not lrn.dbs and not self._mcaps:
                 raise LogReadError(f"{d}: ROS 2 bag has no readable storage file"
                                    + (f" ({'; '.join(failed)})" if failed else " (no .db3 or .mcap file)"))
+            for db in lrn.dbs:
+                db.rows()  # every row's place, once (its warnings go into this report)
             self._check_metadata(meta, why, files)
         except BaseException:
-            self.close()
+            lrn.close()
             raise
+        lrn.report = copy.deepcopy(self.report)
+        return lrn
 
     # -- opening -------------------------------------------------------------------
     @staticmethod
@@ -302,13 +372,8 @@ class Ros2BagLog(LogReader):
         if kind == "sqlite":
             self._add_db(_Db3(f, self))
         elif kind == "mcap":
-            from memlog.io.mcap import McapLog
-
-            sub = McapLog(f)
-            self._adopt(sub.report)
-            sub.report = self.report
-            sub.on_warning = lambda text: self.on_warning(text)
-            self._add_mcap(sub)
+            self._l.mcap_files.append(f)
+            self._attach_mcap(f)
         else:
             raise _FileBad(f"not {'an sqlite3 database' if name.endswith('.db3') else 'an MCAP file' if name.endswith('.mcap') else 'a storage file memlog reads (sqlite3 or MCAP)'}")
 
@@ -316,7 +381,7 @@ class Ros2BagLog(LogReader):
         import zstandard
 
         tmp = tempfile.NamedTemporaryFile(prefix="memlog-", suffix=f.name.removesuffix(".zstd")[-5:])
-        self._tmps.append(tmp)
+        self._l.tmps.append(tmp)
         try:
             with open(f, "rb") as src:
                 zstandard.ZstdDecompressor().copy_stream(src, tmp)
@@ -325,14 +390,15 @@ class Ros2BagLog(LogReader):
         tmp.flush()
         return Path(tmp.name)
 
-    def _adopt(self, rep: ReadReport) -> None:
-        r = self.report
-        r.truncated |= rep.truncated
-        r.skipped_chunks += rep.skipped_chunks
-        r.bad_messages += rep.bad_messages
-        r.undecodable_frames += rep.undecodable_frames
-        r.index_damaged |= rep.index_damaged
-        r.warnings.extend(rep.warnings)
+    def _attach_mcap(self, f: Path) -> None:
+        """Open the MCAP storage file ``f`` (its damage goes into this bag's report)."""
+        from memlog.io.mcap import McapLog
+
+        sub = McapLog(f)
+        self.report.merge(sub.report)
+        sub.report = self.report
+        sub.on_warning = lambda text: self.on_warning(text)
+        self._add_mcap(sub)
 
     def _channel_id(self, src: int, local: int, topic: str, msgtype: str, make: Any) -> None:
         key = (topic, msgtype)
@@ -407,13 +473,12 @@ class Ros2BagLog(LogReader):
                       "reading what the storage files hold")
 
     def close(self) -> None:
-        for db in self._dbs:
-            db.close()
         for sub in self._mcaps:
             sub.close()
-        for tmp in self._tmps:
-            tmp.close()
-        self._dbs, self._mcaps, self._tmps = [], [], []
+        self._mcaps = []
+        if self._key is not None:
+            release(self._key)
+            self._key = None
 
     # -- listing -------------------------------------------------------------------
     def channels(self) -> list[ChannelInfo]:
@@ -447,21 +512,20 @@ class Ros2BagLog(LogReader):
             return "unknown"
         return "some" if kinds & {"all", "some"} else "none"
 
-    def topic_times(self, topic: str) -> Any:
-        import numpy as np
-
+    def frame_table(self, topic: str) -> FrameTable:
+        table = self._l.tables.get(topic)
+        if table is not None:
+            return table
         parts = []
         for src, db in enumerate(self._dbs):
-            _, tids, ts = db.rows()
-            wanted = [tid for tid, (name, _t, _s, _q) in db.topics.items() if name == topic]
-            parts.append(ts[np.isin(tids, wanted)])
-        for sub in self._mcaps:
-            if topic in sub.topics():
-                t = sub.topic_times(topic)
-                if t is None:
-                    return None
-                parts.append(np.asarray(t, dtype=np.int64))
-        return np.sort(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+            ids, tids, ts = db.rows()
+            wanted = np.isin(tids, [tid for tid, (name, _t, _s, _q) in db.topics.items() if name == topic])
+            parts.append((ts[wanted], ((src + 1) << _SRC_BITS) | ids[wanted], np.zeros(int(wanted.sum()), np.int64)))
+        for i, sub in enumerate(self._mcaps):
+            if topic in sub.camera_topics():
+                t, c, o = sub.frame_table(topic).entries()
+                parts.append((t, ((1024 + i) << _SRC_BITS) | c, o))
+        return self._l.tables.setdefault(topic, FrameTable.concat(parts))
 
     def _fill_time_range(self, info: LogInfo) -> None:
         lo, hi = [], []
@@ -507,10 +571,10 @@ class Ros2BagLog(LogReader):
         for rid, tid, t in zip(ids[keep].tolist(), tids[keep].tolist(), ts[keep].tolist()):
             data = db.data(rid)
             if isinstance(data, str):
-                self.report.bad_messages += 1
-                self.warn(f"{db.path}: message row {rid} (log time {t}): {data}; skipped")
+                if self.report.count("bad_messages", (str(db.path), rid)):
+                    self.warn(f"{db.path}: message row {rid} (log time {t}): {data}; skipped")
                 continue
-            yield RawMessage(self._chans[self._gid[(src, tid)]], t, t, 0, data)
+            yield RawMessage(self._chans[self._gid[(src, tid)]], t, t, 0, data, (((src + 1) << _SRC_BITS) | rid, 0))
 
     def _mcap_messages(self, i: int, topics: set[str] | None, start_ns: int | None, end_ns: int | None,
                        log_time_order: bool) -> Iterator[RawMessage]:
@@ -522,7 +586,8 @@ class Ros2BagLog(LogReader):
                                  lambda g, ch=m.channel: ChannelInfo(g, ch.topic, ch.message_encoding, ch.schema,
                                                                      ch.metadata))
                 gid = self._gid[(-1 - i, m.channel.id)]
-            yield RawMessage(self._chans[gid], m.log_time, m.publish_time, m.sequence, m.data)
+            where = None if m.where is None else (((1024 + i) << _SRC_BITS) | m.where[0], m.where[1])
+            yield RawMessage(self._chans[gid], m.log_time, m.publish_time, m.sequence, m.data, where)
 
 
 def _sniff(f: Path) -> str:

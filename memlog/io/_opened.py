@@ -1,0 +1,125 @@
+"""What opening a log learned, kept once per process: a log is read to find its structure once.
+
+Opening a log can be expensive: an unindexed or damaged MCAP or ROS 1 bag is scanned from its
+first byte to its last (to find its chunks, channels and frame tables), a cut ``.db3`` is copied
+with its header fixed, a ``.db3.zstd`` is decompressed. Steps open the same log many times (one
+pass per stage, one reader per job), so every reader keeps what it learned in a per-process
+cache keyed by the file's identity (resolved path, device, inode, size, modification time): the
+next reader of the same unchanged file starts from there instead of reading the log again, and
+the warnings a log gave are said once per process (every reader's report still records them, so
+damage is still reported by every step).
+
+Worker processes forked from a driver that has opened the log inherit its entries. Entries are
+dropped least recently used first (never while a reader uses them), and all at exit;
+:func:`clear_cache` drops them now (tests; a notebook that wants a log read afresh).
+"""
+
+from __future__ import annotations
+
+import atexit
+import os
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Hashable
+from typing import Any, Protocol, TypeVar
+
+__all__ = ["Learned", "learned", "release", "clear_cache", "file_key", "scans", "MAX_ENTRIES"]
+
+#: Logs whose structure is kept when no reader uses them.
+MAX_ENTRIES = 8
+
+
+class Learned(Protocol):
+    """What a reader learned about one log (format-specific); ``said``: warnings already shown."""
+
+    said: set[str]
+
+    def close(self) -> None: ...
+
+
+S = TypeVar("S", bound=Learned)
+
+_LOCK = threading.RLock()
+_CACHE: OrderedDict[Hashable, Learned] = OrderedDict()
+_USERS: dict[Hashable, int] = {}
+_SCANS: dict[str, int] = {}
+
+
+def file_key(kind: str, path: str, *extra: Hashable) -> Hashable:
+    """The cache key of ``path`` (a file, or a directory and every file in it) as it is now."""
+    real = os.path.realpath(path)
+    if os.path.isdir(real):
+        parts = []
+        for name in sorted(os.listdir(real)):
+            try:
+                st = os.stat(os.path.join(real, name))
+            except OSError:
+                continue
+            parts.append((name, st.st_ino, st.st_size, st.st_mtime_ns))
+        return (kind, real, tuple(parts), extra)
+    st = os.stat(real)
+    return (kind, real, st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, extra)
+
+
+def learned(key: Hashable, make: Callable[[], S]) -> tuple[S, bool]:
+    """The entry of ``key`` (made by ``make()`` when there is none) and whether it was made now.
+    The caller uses it until :func:`release`."""
+    with _LOCK:
+        got = _CACHE.get(key)
+        if got is not None:
+            _CACHE.move_to_end(key)
+            _USERS[key] = _USERS.get(key, 0) + 1
+            return got, False  # type: ignore[return-value]
+    made = make()  # outside the lock: a long scan must not block other logs
+    with _LOCK:
+        got = _CACHE.get(key)
+        if got is not None:  # another thread made it meanwhile: keep one
+            made.close()
+            _USERS[key] = _USERS.get(key, 0) + 1
+            return got, False  # type: ignore[return-value]
+        _CACHE[key] = made
+        _USERS[key] = _USERS.get(key, 0) + 1
+        _evict()
+        return made, True
+
+
+def release(key: Hashable) -> None:
+    """A reader is done with the entry of ``key``."""
+    with _LOCK:
+        n = _USERS.get(key, 0) - 1
+        if n > 0:
+            _USERS[key] = n
+        else:
+            _USERS.pop(key, None)
+        _evict()
+
+
+def _evict() -> None:
+    unused = [k for k in _CACHE if k not in _USERS]
+    while len(_CACHE) > MAX_ENTRIES and unused:
+        _CACHE.pop(unused.pop(0)).close()
+
+
+def clear_cache() -> None:
+    """Drop every entry no reader uses (closing its temporary files)."""
+    with _LOCK:
+        for k in [k for k in _CACHE if k not in _USERS]:
+            _CACHE.pop(k).close()
+
+
+def counted_scan(path: str) -> None:
+    """Count one full scan of ``path``'s data (see :func:`scans`)."""
+    with _LOCK:
+        _SCANS[path] = _SCANS.get(path, 0) + 1
+
+
+def scans(path: str | None = None) -> Any:
+    """How many times this process scanned a log's data in full to learn its structure (all
+    logs when ``path`` is None)."""
+    with _LOCK:
+        if path is None:
+            return dict(_SCANS)
+        return _SCANS.get(os.path.realpath(path), 0)
+
+
+atexit.register(clear_cache)
