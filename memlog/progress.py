@@ -1,34 +1,54 @@
-"""Progress bars that switch themselves off when output is not a terminal or --quiet."""
+"""Status messages and progress: library code logs, the caller decides what is shown.
+
+Messages go to the ``memlog`` logger (:func:`info`, :func:`warning`; readers warn on
+``memlog.io``): the command line shows INFO and above on stderr as ``memlog: ...`` lines (``-q``:
+warnings only); a notebook or another program sees what its own logging configuration shows
+(Python's default: warnings). Progress is a tqdm bar when stderr is a terminal, else a status
+line every 30 s through the ``memlog.progress`` logger (INFO). Whether bars are drawn
+(:func:`set_quiet`) and where progress is counted instead (:func:`redirect`) are context
+variables, so threads that run steps side by side (``memlog batch --logs-at-once``) each have
+their own.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
+import logging
 import sys
 import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, TypeVar
 
-__all__ = ["progress", "set_quiet", "is_quiet", "info", "Bar", "redirect"]
+__all__ = ["progress", "set_quiet", "is_quiet", "info", "warning", "Bar", "redirect", "LOGGER"]
 
 T = TypeVar("T")
-_QUIET = False
+#: The logger of every memlog message (children: ``memlog.io``, ``memlog.progress``).
+LOGGER = logging.getLogger("memlog")
+_PROGRESS = logging.getLogger("memlog.progress")
+_QUIET: contextvars.ContextVar[bool] = contextvars.ContextVar("memlog_quiet", default=False)
 #: While set (:func:`redirect`), :func:`progress` draws nothing and calls it with (desc, unit) per item.
-_SINK: Callable[[str, str], None] | None = None
+_SINK: contextvars.ContextVar[Callable[[str, str], None] | None] = contextvars.ContextVar("memlog_sink", default=None)
 
 
 def set_quiet(quiet: bool) -> None:
-    global _QUIET
-    _QUIET = quiet
+    """No progress bars or status lines in this context (and the threads started from it with
+    its context)."""
+    _QUIET.set(quiet)
 
 
 def is_quiet() -> bool:
-    return _QUIET
+    return _QUIET.get()
 
 
 def info(text: str) -> None:
-    """A status line on stderr (suppressed by --quiet)."""
-    if not _QUIET:
-        print(text, file=sys.stderr)
+    """A status message (``memlog`` logger, INFO)."""
+    LOGGER.info(text)
+
+
+def warning(text: str) -> None:
+    """A warning (``memlog`` logger, WARNING)."""
+    LOGGER.warning(text)
 
 
 def _status(desc: str, n: int, total: int | None, unit: str, elapsed: float, done: bool) -> str:
@@ -36,12 +56,12 @@ def _status(desc: str, n: int, total: int | None, unit: str, elapsed: float, don
     of = f"/{total}" if total is not None else ""
     pct = f" ({100 * n / total:.0f} %)" if total else ""
     if done:
-        return f"memlog: {desc}: {n}{of} {unit}s{pct} in {elapsed:.1f} s ({rate:.2f}/s)"
+        return f"{desc}: {n}{of} {unit}s{pct} in {elapsed:.1f} s ({rate:.2f}/s)"
     if total is not None and rate > 0:
         left = f", about {max(0.0, (total - n) / rate):.0f} s left"
     else:
         left = ", total unknown" if total is None else ""
-    return f"memlog: {desc}: {n}{of} {unit}s{pct} ({rate:.2f}/s{left})"
+    return f"{desc}: {n}{of} {unit}s{pct} ({rate:.2f}/s{left})"
 
 
 def _log_lines(it: Iterable[T], total: int | None, desc: str, unit: str, every_s: float) -> Iterator[T]:
@@ -55,21 +75,21 @@ def _log_lines(it: Iterable[T], total: int | None, desc: str, unit: str, every_s
         now = time.monotonic()
         if now - last >= every_s:
             last = now
-            print(_status(desc, n, total, unit, now - t0, False), file=sys.stderr, flush=True)
-    print(_status(desc, n, total, unit, time.monotonic() - t0, True), file=sys.stderr, flush=True)
+            _PROGRESS.info(_status(desc, n, total, unit, now - t0, False))
+    _PROGRESS.info(_status(desc, n, total, unit, time.monotonic() - t0, True))
 
 
 def progress(it: Iterable[T], *, total: int | None = None, desc: str = "", unit: str = "msg",
              every_s: float = 30.0, **kw: Any) -> Iterator[T]:
     """Wrap an iterable in a tqdm bar on a terminal, or status lines every ``every_s`` seconds
     otherwise; nothing with --quiet."""
-    sink = _SINK
+    sink = _SINK.get()
     if sink is not None:
         for x in it:
             yield x
             sink(desc, unit)
         return
-    if _QUIET:
+    if _QUIET.get():
         yield from it
         return
     if not sys.stderr.isatty():
@@ -86,12 +106,11 @@ def progress(it: Iterable[T], *, total: int | None = None, desc: str = "", unit:
 def redirect(sink: Callable[[str, str], None]) -> Iterator[None]:
     """Inside the block, :func:`progress` loops draw nothing and call ``sink(desc, unit)`` once
     per item instead (a caller that runs several steps shows one bar over all of them)."""
-    global _SINK
-    old, _SINK = _SINK, sink
+    token = _SINK.set(sink)
     try:
         yield
     finally:
-        _SINK = old
+        _SINK.reset(token)
 
 
 class Bar:
@@ -105,7 +124,7 @@ class Bar:
         self._t0 = self._last = time.monotonic()
         self._bar: Any = None
         self._closed = False
-        if not _QUIET and sys.stderr.isatty():
+        if not _QUIET.get() and sys.stderr.isatty():
             from tqdm import tqdm
 
             self._bar = tqdm(total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=False, mininterval=0.2)
@@ -131,9 +150,9 @@ class Bar:
             self._bar.update(n)
             return
         now = time.monotonic()
-        if not _QUIET and now - self._last >= self.every_s:
+        if not _QUIET.get() and now - self._last >= self.every_s:
             self._last = now
-            print(self._line(now, False), file=sys.stderr, flush=True)
+            _PROGRESS.info(self._line(now, False))
 
     def _line(self, now: float, done: bool) -> str:
         line = _status(self.desc, self.n, self.total, self.unit, now - self._t0, done)
@@ -146,5 +165,5 @@ class Bar:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
-        elif not _QUIET:
-            print(self._line(time.monotonic(), True), file=sys.stderr, flush=True)
+        elif not _QUIET.get():
+            _PROGRESS.info(self._line(time.monotonic(), True))

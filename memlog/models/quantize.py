@@ -35,7 +35,6 @@ import functools
 import hashlib
 import io
 import json
-import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -61,6 +60,7 @@ from memlog.models.resmem import (
     run_crops,
 )
 from memlog.models.runtime import make_session
+from memlog.progress import info
 
 __all__ = [
     "QUANTIZER_VERSION",
@@ -396,7 +396,7 @@ def quantize_resmem(
     }
     cache.write_model(out_path, data, side)
     if not quiet:
-        print(f"memlog: wrote {out_path} ({side['seconds']} s)", file=sys.stderr)
+        info(f"wrote {out_path} ({side['seconds']} s)")
     return out_path
 
 
@@ -459,7 +459,7 @@ def prepare_resmem_int8(force: bool = False, quiet: bool = False, n_images: int 
         return out
     fp32 = resmem_onnx_path()
     if not quiet:
-        print(f"memlog: quantising {fp32} to int8 (fast mode) ...", file=sys.stderr)
+        info(f"quantising {fp32} to int8 (fast mode) ...")
     crops = calibration_crops(n_images)
     return quantize_resmem(fp32, out, crops, calibration=calibration_description(n_images), quiet=quiet)
 
@@ -526,7 +526,7 @@ def prepare_frame_fit(force: bool = False, quiet: bool = False, n_calibration: i
         return out
     fp32, int8 = resmem_onnx_path(), resmem_int8_path()
     if not quiet:
-        print("memlog: fitting fast mode's whole-frame estimate ...", file=sys.stderr)
+        info("fitting fast mode's whole-frame estimate ...")
     s32 = make_session(fp32, device="cpu", what="ResMem")
     s8 = make_session(int8, device="cpu", what="int8 ResMem")
     w = crop_weights(None).reshape(-1)
@@ -555,7 +555,7 @@ def prepare_frame_fit(force: bool = False, quiet: bool = False, n_calibration: i
             "calibration": calibration_description(n_calibration)}
     cache.write_model(out, (json.dumps(fit, indent=2, sort_keys=True) + "\n").encode(), meta)
     if not quiet:
-        print(f"memlog: whole-frame estimate fitted (delta {fit['delta']:.3f})", file=sys.stderr)
+        info(f"whole-frame estimate fitted (delta {fit['delta']:.3f})")
     return out
 
 

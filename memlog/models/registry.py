@@ -1,12 +1,12 @@
 """Every model memlog uses: where it comes from, its licence, its cached file and hash.
 
-``list_models`` reports; ``prepare_models`` fetches and converts what is missing (this is
-``memlog models prepare``); ``model_hashes`` is what runs record in their metadata.
+``list_models`` reports (also the sha256 ``memlog batch`` keys its resume on); ``prepare_models``
+fetches and converts what is missing (this is ``memlog models prepare``). What a run records of
+the models it used comes from the loaded models themselves (``Scorer.provenance``).
 """
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -14,8 +14,9 @@ from typing import Any
 
 from memlog.errors import ModelError
 from memlog.models import cache
+from memlog.progress import info
 
-__all__ = ["ModelInfo", "list_models", "prepare_models", "model_hashes", "MODEL_NAMES", "DEFAULT_PREPARE"]
+__all__ = ["ModelInfo", "list_models", "prepare_models", "MODEL_NAMES", "DEFAULT_PREPARE"]
 
 RESMEM_LICENCE = "ResMem Non-commercial License (Univ. of Chicago): NON-COMMERCIAL USE ONLY"
 
@@ -127,19 +128,5 @@ def prepare_models(names: Iterable[str] | None = None, force: bool = False) -> N
     if unknown:
         raise ModelError(f"unknown model(s) {', '.join(sorted(unknown))} (known: {', '.join(MODEL_NAMES)})")
     for name in todo:
-        print(f"memlog: preparing {name} ...", file=sys.stderr)
+        info(f"preparing {name} ...")
         _prepare_one(name, force)
-
-
-def model_hashes(names: Iterable[str]) -> dict[str, str]:
-    """sha256 of the named models (recorded in outputs); :class:`ModelError` when one is not
-    ready, so provenance is never silently empty."""
-    out: dict[str, str] = {}
-    for name in names:
-        if name not in _LISTERS:
-            raise ModelError(f"unknown model {name!r} (known: {', '.join(MODEL_NAMES)})")
-        info = _LISTERS[name]()
-        if not info.ready or not info.sha256:
-            raise ModelError(f"model {name} is not ready ({info.note}); its hash cannot be recorded")
-        out[name] = info.sha256
-    return out

@@ -20,7 +20,6 @@ interpolation matrix of ``cv2.resize`` and S the staticity map.
 
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Mapping
 from functools import lru_cache
@@ -36,6 +35,7 @@ from memlog.errors import ModelError
 from memlog.models import cache
 from memlog.models.fetch import cached_package_file, fetch_package_file, installed_package_file, sha256_file
 from memlog.models.state_dict import load_state_dict
+from memlog.progress import info
 
 __all__ = [
     "FRAME",
@@ -482,11 +482,11 @@ def prepare_resmem(progress: bool = True) -> Path:
             "delete it and run `memlog models prepare` again"
         )
     if progress:
-        print(f"memlog: converting {src} to ONNX ...", file=sys.stderr)
+        info(f"converting {src} to ONNX ...")
     t0 = time.perf_counter()
     convert(src, out)
     if progress:
-        print(f"memlog: wrote {out} ({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+        info(f"wrote {out} ({time.perf_counter() - t0:.1f} s)")
     return out
 
 

@@ -304,14 +304,14 @@ def read_cached(path: str | os.PathLike[str], log: str | os.PathLike[str], meta:
         t = read_descriptors(p)
         check_compatible(meta, t.meta)
     except DescriptorError as exc:
-        info(f"memlog: not reusing {p}: {exc}")
+        info(f"not reusing {p}: {exc}")
         return None
     if not same_identity(t.extra.get("log_identity"), log):
-        info(f"memlog: not reusing {p}: it was made from another log (or {log} changed)")
+        info(f"not reusing {p}: it was made from another log (or {log} changed)")
         return None
     topics = window.topics if window.topics is not None else tuple(t.extra.get("window", {}).get("topics") or ())
     if t.extra.get("window") != FrameWindow(tuple(topics), window.start_ns, window.end_ns, window.stride).to_dict():
-        info(f"memlog: not reusing {p}: it was made with other topics, time window or stride")
+        info(f"not reusing {p}: it was made with other topics, time window or stride")
         return None
-    info(f"memlog: reusing descriptors {p} (same log, window and descriptor)")
+    info(f"reusing descriptors {p} (same log, window and descriptor)")
     return t

@@ -465,7 +465,7 @@ def make_map(
                                         "n_fit": white.n_fit, "eps": white.eps}
                 elif cfg.whiten:
                     result.whitening = {"skipped": f"fewer than {MIN_SAMPLES} frames described; not whitened"}
-                    info(f"memlog: {reader.path}: the map is not whitened: whitening is fitted on at least "
+                    info(f"{reader.path}: the map is not whitened: whitening is fitted on at least "
                          f"{MIN_SAMPLES} frames of the drive")
             w.close({
                 "descriptor": json.dumps(choice.to_dict() if choice else None, sort_keys=True),
