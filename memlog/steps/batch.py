@@ -12,9 +12,11 @@ are merged in log-time order by the one writer, this process (the driver).
   workers only read the logs, so the logs must be at the same path on every node (a shared
   filesystem) while OUTDIR need only be reachable by the driver.
 * Resume: the summary file (default ``OUTDIR/batch.json``, rewritten after every log) records
-  each finished log's input identity (:func:`~memlog.io.identity.log_identity`), the settings
-  its outputs depend on and each output's size and modification time; a rerun skips a log whose
-  record still matches and says so.
+  each finished log's input identity (:func:`~memlog.io.identity.log_identity`), the key of
+  what its outputs depend on (every output setting, the memlog version and the sha256 of every
+  model the run uses) and each output's size and modification time; a rerun skips a log whose
+  record still matches and says so. A worker process that dies (out of memory) fails its log;
+  the pool is replaced for the logs after it.
 * A damaged log is finished as far as it can be read and reported (exit 3); a log that cannot be
   read at all, or whose map would be empty, fails (exit 1) after the others have run.
 """
@@ -22,11 +24,13 @@ are merged in log-time order by the one writer, this process (the driver).
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import dataclasses
 import glob
 import hashlib
 import json
 import os
+import threading
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -43,7 +47,7 @@ from memlog.io.open import open_log
 from memlog.io.records import ReadReport
 from memlog.models.runtime import choose_providers
 from memlog.outputs.results import write_results
-from memlog.progress import Bar, info, redirect
+from memlog.progress import Bar, info, redirect, warning
 from memlog.steps.map import MapConfig, make_map
 from memlog.steps.parallel import Executor, InProcess, cpu_count, make_executor
 from memlog.steps.score import score
@@ -103,9 +107,32 @@ class BatchConfig:
         settings: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(m), sort_keys=True))
         return settings
 
-    def settings_key(self) -> str:
-        """sha256 of :meth:`output_settings` (recorded per log)."""
-        return hashlib.sha256(json.dumps(self.output_settings(), sort_keys=True).encode()).hexdigest()
+    def models(self) -> list[str]:
+        """The models whose files the outputs depend on."""
+        names = ["resmem", "ssd-mobilenet-v2-coco"]
+        if self.map.score.fast:
+            names.append("resmem-int8")
+        if self.map.descriptor is not None and ("dinov2" in self.map.descriptor or self.map.descriptor == "auto"):
+            names.append("dinov2-vits14")
+        return names
+
+    def settings_key(self, models: dict[str, str | None] | None = None) -> str:
+        """sha256 of what the outputs depend on (recorded per log): :meth:`output_settings`, the
+        memlog version and ``models`` (name -> sha256 of the model file, None when not prepared;
+        default: read now, :func:`model_versions`)."""
+        key = {"settings": self.output_settings(), "memlog_version": __version__,
+               "models": model_versions(self.models()) if models is None else models}
+        return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
+
+
+def model_versions(names: Sequence[str]) -> dict[str, str | None]:
+    """sha256 of each named model as prepared on this machine (None when it is not prepared: a
+    run that needs it fails and says so; one that does not, such as ``auto`` choosing the
+    thumbnail, is not affected)."""
+    from memlog.models.registry import list_models
+
+    ready = {m.name: m.sha256 if m.ready else None for m in list_models()}
+    return {n: ready.get(n) for n in names}
 
 
 @dataclass
@@ -188,8 +215,10 @@ def read_manifest(path: str | os.PathLike[str]) -> list[str]:
     return logs
 
 
-def _outputs(outdir: Path, name: str) -> dict[str, str]:
-    return {kind: str(outdir / f"{name}{suffix}") for kind, suffix in OUTPUT_SUFFIXES.items()}
+def _outputs(outdir: Path, name: str, descriptors: bool = True) -> dict[str, str]:
+    """The outputs of one log (no descriptor file when the map has no descriptors)."""
+    return {kind: str(outdir / f"{name}{suffix}") for kind, suffix in OUTPUT_SUFFIXES.items()
+            if descriptors or kind != "descriptors"}
 
 
 def _file_stats(outputs: dict[str, str]) -> dict[str, dict[str, int]] | None:
@@ -221,8 +250,21 @@ class _Executors:
         self.ex: Executor | None = None
         self.own_ray = False
         self.description: dict[str, Any] = {"kind": "ray" if cfg.ray else "processes", "started": False}
+        self._lock = threading.RLock()  # logs running side by side share one executor
 
     def get(self) -> Executor:
+        with self._lock:
+            return self._get()
+
+    def broken(self, ex: Executor) -> None:
+        """``ex`` lost a worker process: the logs after this one get a new pool (the logs that
+        shared it while it broke fail with this one)."""
+        with self._lock:
+            if self.ex is ex:
+                self.ex = None
+                ex.close()
+
+    def _get(self) -> Executor:
         if self.ex is not None:
             return self.ex
         cfg = self.cfg
@@ -250,11 +292,11 @@ class _Executors:
                             "cluster_gpus": gpus,
                             **placement.to_dict(), "devices": devices,
                             "hosts": sorted({str(i["host"]) for i in ex.info})}
-        info(f"memlog: Ray: {placement.actors} actor(s) x {placement.threads} CPU"
+        info(f"Ray: {placement.actors} actor(s) x {placement.threads} CPU"
              + (f" + {placement.gpus:g} GPU" if placement.gpus else "") + f" on {len(self.description['hosts'])} "
              f"node(s) ({cpus:g} CPUs, {gpus:g} GPUs); models run on {', '.join(devices)}")
         if placement.gpus and devices == ["cpu"]:
-            info("memlog: warning: the actors hold GPUs but ONNX Runtime there has no CUDA provider; install "
+            warning("the actors hold GPUs but ONNX Runtime there has no CUDA provider; install "
                  "memlog[gpu] on the workers")
         return ex
 
@@ -291,14 +333,14 @@ def _locked(outdir: Path) -> Iterator[None]:
         os.close(fd)
 
 
-def _prepare(logs: Sequence[str], outdir: Path) -> list[tuple[str, str, dict[str, str]]]:
+def _prepare(logs: Sequence[str], outdir: Path, descriptors: bool) -> list[tuple[str, str, dict[str, str]]]:
     """(log, name, outputs) per log, after creating ``outdir``; usage errors (names that collide,
     an output that is an input) before any work."""
     names = log_names(logs, outdir, "run them into different directories")
     outdir.mkdir(exist_ok=True)
     items = []
     for log, name in zip(logs, names):
-        outs = _outputs(outdir, name)
+        outs = _outputs(outdir, name, descriptors)
         for path in outs.values():
             check_output(path, logs, flag="-o")
         items.append((log, name, outs))
@@ -334,7 +376,7 @@ def batch(
         require_ray()
     else:
         choose_providers(cfg.map.score.device)  # --device cuda without CUDA: said before any work
-    items = _prepare(all_logs, out)
+    items = _prepare(all_logs, out, cfg.map.descriptor is not None)
     settings = cfg.output_settings()
     key = cfg.settings_key()
     window = cfg.window()
@@ -349,9 +391,9 @@ def batch(
             if r.status == "ok":
                 todo.append((r, r.frames))
             elif r.status == "skipped":
-                info(f"memlog: {name}: outputs up to date (same input and settings): skipped")
+                info(f"{name}: outputs up to date (same input and settings): skipped")
             else:
-                info(f"memlog: {name}: failed: {r.error}")
+                info(f"{name}: failed: {r.error}")
         executors = _Executors(cfg)
         known = [n for _, n in todo]
         total = 2 * sum(n for n in known if n is not None) if None not in known else None  # score + map passes
@@ -373,7 +415,7 @@ def batch(
             with redirect(sink):
                 runs = [r for r, _ in todo]
                 for k, r in enumerate(_run_all(runs, cfg, window, key, executors, bar)):
-                    line = f"memlog: [{k + 1}/{len(runs)}] {r.name}: {r.status}"
+                    line = f"[{k + 1}/{len(runs)}] {r.name}: {r.status}"
                     if r.status != "failed":
                         line += f", {r.frames} frames, {r.kept} kept, {r.seconds:.1f} s"
                     if r.worker_failures:
@@ -397,7 +439,7 @@ def _remove_leftovers(outdir: Path, items: list[tuple[str, str, dict[str, str]]]
                 tmp.unlink(missing_ok=True)
                 gone += 1
     if gone:
-        info(f"memlog: removed {gone} temporary file(s) an interrupted run left in {outdir}")
+        info(f"removed {gone} temporary file(s) an interrupted run left in {outdir}")
 
 
 def _preflight(log: str, name: str, outs: dict[str, str], window: FrameWindow, settings: str,
@@ -421,7 +463,7 @@ def _preflight(log: str, name: str, outs: dict[str, str], window: FrameWindow, s
         return r
     try:
         with open_log(log) as reader:
-            reader.on_warning = lambda text: None  # the run reports damage when it reads the frames
+            reader.quiet_warnings()  # the run reports damage when it reads the frames
             r.frames = reader.count_frames(window)
     except MemlogError as exc:
         r.status, r.error = "failed", str(exc)
@@ -451,7 +493,8 @@ def _run_all(runs: list[LogResult], cfg: BatchConfig, window: FrameWindow, setti
                     nxt = next(it, None)
                     if nxt is None:
                         break
-                    running[pool.submit(_run_one, nxt, cfg, window, settings, executors, False)] = nxt
+                    ctx = contextvars.copy_context()  # the progress sink and quiet setting of this run
+                    running[pool.submit(ctx.run, _run_one, nxt, cfg, window, settings, executors)] = nxt
                 if not running:
                     return
                 if bar is not None:
@@ -465,10 +508,9 @@ def _run_all(runs: list[LogResult], cfg: BatchConfig, window: FrameWindow, setti
             raise
 
 
-def _run_one(r: LogResult, cfg: BatchConfig, window: FrameWindow, settings: str, executors: _Executors,
-             alone: bool = True) -> None:
-    """Score, then map, one log (``r`` is filled in); ``alone``: no other log runs meanwhile (a
-    broken local pool is then made again for the next log)."""
+def _run_one(r: LogResult, cfg: BatchConfig, window: FrameWindow, settings: str, executors: _Executors) -> None:
+    """Score, then map, one log (``r`` is filled in); a broken local pool is made again for the
+    logs after it."""
     from concurrent.futures.process import BrokenProcessPool
 
     t0 = time.perf_counter()
@@ -490,8 +532,7 @@ def _run_one(r: LogResult, cfg: BatchConfig, window: FrameWindow, settings: str,
     except BrokenProcessPool:
         r.status, r.error = "failed", "a worker process died (out of memory?); the pool was restarted"
         r.worker_failures = 1
-        if alone:
-            executors.close()
+        executors.broken(ex)
     except Exception as exc:  # a bug: the other logs still run; the summary says what happened
         if os.environ.get("MEMLOG_DEBUG"):
             import traceback
