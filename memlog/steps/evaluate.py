@@ -189,25 +189,25 @@ def _reuse_scores(path: Path, reference: str, cfg: ScoreConfig, topic: str | Non
         used = run_config(path)
         ident = run_input_identity(path)
     except MemlogError as exc:  # an unreadable cache is simply not reused
-        info(f"memlog: not reusing {path}: it does not read ({exc})")
+        info(f"not reusing {path}: it does not read ({exc})")
         return False
     if not same_identity(ident, reference):
-        info(f"memlog: not reusing {path}: it was scored from another reference log (or {reference} changed)")
+        info(f"not reusing {path}: it was scored from another reference log (or {reference} changed)")
         return False
     if used is None or used.replace(threads=0, device="auto") != cfg.replace(threads=0, device="auto"):
-        info(f"memlog: not reusing {path}: it was scored with other settings")
+        info(f"not reusing {path}: it was scored with other settings")
         return False
     if topic is not None and topic not in read_scores(path):
-        info(f"memlog: not reusing {path}: it has no scores for {topic}")
+        info(f"not reusing {path}: it has no scores for {topic}")
         return False
     if window is not None and topic is not None:
         have = {r["frame_index"] for r in read_scores(path)[topic]}
         with open_log(reference) as reader:
             need = {f.index for f in reader.frames([topic], window.start_ns, window.end_ns, window.stride)}
         if not need <= have:
-            info(f"memlog: not reusing {path}: it lacks scores of {len(need - have)} frame(s) of the window")
+            info(f"not reusing {path}: it lacks scores of {len(need - have)} frame(s) of the window")
             return False
-    info(f"memlog: reusing {path} (same reference log and scoring settings)")
+    info(f"reusing {path} (same reference log and scoring settings)")
     return True
 
 
@@ -293,10 +293,7 @@ def evaluate(
         choices = [resolve_descriptor(name, reader, ref_topic) for name in cfg.descriptors]
     kinds = list(dict.fromkeys(c.chosen for c in choices))
     describers = {kind: make_describer(kind) for kind in kinds}
-    out.mkdir(exist_ok=True)
-    if not cfg.report:
-        (out / "report.html").unlink(missing_ok=True)  # never leave an older report beside new results
-    (out / "results.json").unlink(missing_ok=True)
+    out.mkdir(exist_ok=True)  # (an earlier run's results.json stays until this run's replaces it)
 
     # 1. score the reference drive (every score: sweeps and calibration need them)
     reports: list[ReadReport] = []
@@ -410,11 +407,13 @@ def evaluate(
                                         "discarded=false_negative it still counts in the recall denominator",
                            }}
     results["seconds"] = round(time.perf_counter() - t_start, 1)
-    write_results(out / "results.json", results)
     if cfg.report:
         from memlog.outputs.report import write_report
 
         write_report(out / "report.html", results, table, sel, per_variant, ref_t, reference, ref_topic)
+    else:
+        (out / "report.html").unlink(missing_ok=True)  # never leave an older report beside new results
+    write_results(out / "results.json", results)  # last: results.json is there only for a finished run
     if map_res.report is not None:
         reports.append(map_res.report)
     return EvaluateResult(results, reports)
