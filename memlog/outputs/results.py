@@ -11,7 +11,7 @@ import numpy as np
 
 from memlog.io.atomic import write_bytes_atomic
 
-__all__ = ["write_results", "read_results"]
+__all__ = ["write_results"]
 
 
 def _json_default(o: Any) -> Any:
@@ -30,11 +30,3 @@ def write_results(path: str | os.PathLike[str], results: dict[str, Any]) -> Path
     """Write ``results`` as indented JSON, atomically."""
     text = json.dumps(results, indent=2, default=_json_default, allow_nan=True)
     return write_bytes_atomic(path, (text + "\n").encode())
-
-
-def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a ``results.json`` back."""
-    data = json.loads(Path(path).read_text())
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: not a results object")
-    return data
