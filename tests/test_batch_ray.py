@@ -2,6 +2,8 @@
 
 * three fixture logs of different formats (ROS 2 MCAP bag, ROS 1 bag, ROS 2 sqlite bag) give the
   outputs of local one-process ``score`` + ``make_map`` runs, timing fields aside; a rerun skips them;
+* the actors are planned from the Ray instance's nodes (``ray.nodes()``: one node, 2 CPUs) and
+  pinned to it (a cluster of several nodes: ``tests/test_ray_nodes.py``);
 * a worker process killed once mid-task (the ``MEMLOG_TEST_KILL_WORKER`` hook) costs a retry, not
   the run, and changes no output;
 * a manifest with a truncated log, a file that is no log and a missing path: the good log's
@@ -26,7 +28,7 @@ import ray  # in the test extra: the Ray tests always run (no skip)
 from memlog.cli.app import main
 from memlog.steps.batch import BatchConfig, batch
 from memlog.steps.map import MapConfig
-from memlog.steps.ray_pool import KILL_HOOK
+from memlog.steps.ray_pool import KILL_HOOK, Node, cluster_nodes
 from tests.same_outputs import assert_same_outputs, reference
 from tests.conftest import FIXTURES, ROOT, shared
 from tests.stand_in import SWITCH_ENV
@@ -77,6 +79,10 @@ def test_three_formats_on_ray_give_the_local_outputs_and_resume(
     assert [r.status for r in res.logs] == ["ok", "ok", "ok"] and res.exit_code == 0
     assert res.executor["kind"] == "ray" and res.executor["actors"] == 2 and res.executor["threads"] == 1
     assert res.executor["devices"] == ["cpu"]
+    node = ray.get_runtime_context().get_node_id()  # the plan is the nodes Ray reports, per node
+    assert cluster_nodes() == [Node(2.0, 0.0, node)]
+    assert res.executor["nodes"] == [{"node": node, "actors": 2, "gpus": 0.0}]
+    assert (res.executor["cluster_cpus"], res.executor["cluster_gpus"]) == (2.0, 0.0)
     for r in res.logs:
         assert_same_outputs(r.outputs, want[Path(r.log).name])
         assert r.worker_failures == 0
