@@ -34,16 +34,12 @@ from memlog._version import __version__
 from memlog.errors import ConfigError, MemlogError
 from memlog.steps.parallel import Job, cpu_count
 
-__all__ = ["RAY_INSTALL", "KILL_HOOK", "ray_available", "require_ray", "connect", "Node", "cluster_nodes",
-           "NodePlacement", "Placement", "plan_placement", "RayActors", "WorkerLostError"]
+__all__ = ["RAY_INSTALL", "ray_available", "require_ray", "connect", "Node", "cluster_nodes", "NodePlacement",
+           "Placement", "plan_placement", "RayActors", "WorkerLostError"]
 
 R = TypeVar("R")
 
 RAY_INSTALL = "pip install 'memlog[ray]'"
-#: Test hook: when this environment variable names a file that exists in a worker's environment,
-#: the first worker to finish a job removes the file and exits before returning the result (a
-#: worker killed mid-task, exactly once); the job must then be retried.
-KILL_HOOK = "MEMLOG_TEST_KILL_WORKER"
 
 
 #: Default cap on actors sharing one GPU (each holds a ResMem session, ~1-1.5 GB of GPU memory).
@@ -246,20 +242,7 @@ class _Worker:
                 "gpus": os.environ.get("CUDA_VISIBLE_DEVICES")}
 
     def run(self, fn: Callable[..., Any], job: Job) -> tuple[int, Any]:
-        result = fn(*job)
-        _kill_hook()
-        return os.getpid(), result
-
-
-def _kill_hook() -> None:
-    path = os.environ.get(KILL_HOOK)
-    if not path:
-        return
-    try:
-        os.unlink(path)  # exactly one worker wins
-    except OSError:
-        return
-    os._exit(1)
+        return os.getpid(), fn(*job)
 
 
 class RayActors:
