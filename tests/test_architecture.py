@@ -135,3 +135,12 @@ def test_the_checks_can_fail() -> None:
     """The layer rule catches an upward import (so the tests above are not vacuous)."""
     assert layer_of("memlog.io.base") < layer_of("memlog.steps.score")
     assert "memlog.io.base" in imports_of("memlog.io.frame") or "memlog.io.image" in imports_of("memlog.io.frame")
+
+
+def test_the_package_has_no_test_hooks() -> None:
+    """Test-only behaviour lives in tests/, not in the package: no module of memlog reads a
+    ``MEMLOG_TEST_*`` variable or ends its own process (a test kills a Ray worker from the test
+    side: ``tests/worker_kill.py``)."""
+    found = [f"{name}: {needle}" for name, path in sorted(MODULES.items())
+             for needle in ("MEMLOG_TEST", "os._exit(") if needle in path.read_text(encoding="utf-8")]
+    assert not found, f"test hooks in the package: {found}"

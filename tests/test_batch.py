@@ -17,13 +17,15 @@ from memlog.cli.app import main
 from memlog.errors import ConfigError, OutputPathError
 from memlog.steps.batch import BatchConfig, batch, read_manifest
 from memlog.steps.map import MapConfig
-from memlog.steps.ray_pool import Placement, plan_placement
+from memlog.steps.ray_pool import Node, NodePlacement, Placement, plan_placement
 from tests.same_outputs import assert_same_outputs, reference
 from tests.conftest import FIXTURES
 from tests.stand_in import use_stand_in
 
 
 # -- placement --------------------------------------------------------------------------------------
+# one node: the rule of plan_placement's docstring (these cases were written for cluster totals; as
+# one node's resources they give the same actors)
 @pytest.mark.parametrize("cpus,gpus,kw,want", [
     (2, 0, {}, Placement(2, 1, 0.0)),  # this machine: two single-threaded actors
     (2, 0, {"threads": 2}, Placement(1, 2, 0.0)),
@@ -36,9 +38,9 @@ from tests.stand_in import use_stand_in
     (4, 2, {"device": "cuda"}, Placement(4, 1, 0.5)),
     (64, 8, {"workers": 10}, Placement(10, 1, 0.125)),
 ])
-def test_placement_fits_the_cluster(cpus: int, gpus: int, kw: dict, want: Placement) -> None:
-    got = plan_placement(cpus, gpus, **kw)
-    assert got == want
+def test_placement_fits_the_node(cpus: int, gpus: int, kw: dict, want: Placement) -> None:
+    got = plan_placement([Node(cpus, gpus, "n1")], **kw)
+    assert got == Placement(want.actors, want.threads, want.gpus, (NodePlacement("n1", want.actors, want.gpus),))
     assert got.actors * got.threads <= cpus and got.actors * got.gpus <= gpus + 1e-9
 
 
@@ -50,7 +52,56 @@ def test_placement_fits_the_cluster(cpus: int, gpus: int, kw: dict, want: Placem
 ])
 def test_placement_that_cannot_fit_names_the_flag(cpus: int, gpus: int, kw: dict, flag: str) -> None:
     with pytest.raises(ConfigError, match=flag):
-        plan_placement(cpus, gpus, **kw)
+        plan_placement([Node(cpus, gpus)], **kw)
+
+
+HEAD, GPU = Node(4, 0, "head"), Node(2, 1, "gpu")  # a CPU-only head node and one small GPU node
+
+
+@pytest.mark.parametrize("nodes,kw,want", [
+    # CPU actors on the head, GPU actors sharing the GPU node's GPU by its own CPUs (totals, 6 CPUs and
+    # 1 GPU, planned 6 actors each wanting 1/6 GPU: 4 of them fit no node)
+    ([HEAD, GPU], {}, [("head", 4, 0.0), ("gpu", 2, 0.5)]),
+    # 4 CPUs per actor: the GPU node has 2, so only the head holds one (totals planned 1 actor of
+    # 4 CPUs + 1 GPU: no node has both)
+    ([HEAD, GPU], {"threads": 4}, [("head", 1, 0.0)]),
+    ([HEAD, GPU], {"device": "cuda"}, [("gpu", 2, 0.5)]),  # the models on a GPU: the head holds none
+    ([HEAD, GPU], {"device": "cpu"}, [("head", 4, 0.0), ("gpu", 2, 0.0)]),
+    ([HEAD, GPU], {"workers": 3}, [("head", 1, 0.0), ("gpu", 2, 0.5)]),  # the GPU node's actors first
+    ([HEAD, GPU], {"workers": 2}, [("gpu", 2, 0.5)]),
+    ([HEAD, GPU], {"actors_per_gpu": 1}, [("head", 4, 0.0), ("gpu", 1, 1.0)]),
+    # two CPU nodes: each holds what its own CPUs hold (totals, 6 CPUs, planned 2 actors of 3 CPUs)
+    ([Node(4, 0, "a"), Node(2, 0, "b")], {}, [("a", 4, 0.0), ("b", 2, 0.0)]),
+    ([Node(4, 0, "a"), Node(2, 0, "b")], {"threads": 3}, [("a", 1, 0.0)]),
+    ([Node(4, 0, "a"), Node(4, 0, "b")], {"workers": 3}, [("a", 2, 0.0), ("b", 1, 0.0)]),  # spread in turn
+    # a node too small for an actor holds none; the others do
+    ([Node(1, 0, "small"), Node(4, 0, "big")], {"threads": 2}, [("big", 2, 0.0)]),
+    ([Node(0, 0, "driver"), HEAD], {}, [("head", 4, 0.0)]),  # a head with num-cpus 0
+    # two GPU nodes of other shapes: each shares its own GPUs by its own CPUs per GPU
+    ([Node(64, 8, "h100"), Node(8, 4, "t4")], {}, [("h100", 64, 0.125), ("t4", 8, 0.5)]),
+])
+def test_placement_is_planned_per_node(nodes: list[Node], kw: dict, want: list[tuple[str, int, float]]) -> None:
+    got = plan_placement(nodes, **kw)
+    assert [(p.node, p.actors, p.gpus) for p in got.nodes] == want
+    assert got.actors == sum(a for _, a, _ in want) and got.gpus == max(g for _, _, g in want)
+    by_id = {n.id: n for n in nodes}
+    for p in got.nodes:  # every actor's CPUs and GPU share fit the node it is planned on
+        node = by_id[p.node]
+        assert p.actors * got.threads <= node.cpus and p.actors * p.gpus <= node.gpus + 1e-9
+
+
+@pytest.mark.parametrize("nodes,kw,match", [
+    ([Node(1, 0), Node(1, 0)], {"threads": 2}, r"--threads 2: an actor needs 2 CPU\(s\) on one node; the largest "
+                                                r"node of the Ray cluster has 1"),  # totals: 2 CPUs, 1 actor
+    ([HEAD, GPU], {"device": "cuda", "threads": 4}, r"--threads 4: .*the largest GPU node .* has 2"),
+    ([Node(4, 0), Node(8, 0)], {"device": "cuda"}, "--device cuda: the Ray cluster has no GPU"),
+    ([HEAD, GPU], {"workers": 7}, r"--workers 7: .*at most 6 actor"),
+    ([Node(0, 0)], {}, "--threads 1"),  # no CPU anywhere
+    ([], {}, "no alive node"),
+])
+def test_placement_no_node_holds_says_what_is_missing(nodes: list[Node], kw: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        plan_placement(nodes, **kw)
 
 
 # -- arguments ------------------------------------------------------------------------------------

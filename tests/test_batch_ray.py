@@ -2,8 +2,10 @@
 
 * three fixture logs of different formats (ROS 2 MCAP bag, ROS 1 bag, ROS 2 sqlite bag) give the
   outputs of local one-process ``score`` + ``make_map`` runs, timing fields aside; a rerun skips them;
-* a worker process killed once mid-task (the ``MEMLOG_TEST_KILL_WORKER`` hook) costs a retry, not
-  the run, and changes no output;
+* the actors are planned from the Ray instance's nodes (``ray.nodes()``: one node, 2 CPUs) and
+  pinned to it (a cluster of several nodes: ``tests/test_ray_nodes.py``);
+* a worker process killed once mid-task (from the test side: ``tests/worker_kill.py``) costs a
+  retry, not the run, and changes no output;
 * a manifest with a truncated log, a file that is no log and a missing path: the good log's
   outputs as before, the damaged one finished and reported, exit 1 at the end;
 * the shared EuRoC logs (four formats) and a Nordland drive: the local outputs;
@@ -26,10 +28,11 @@ import ray  # in the test extra: the Ray tests always run (no skip)
 from memlog.cli.app import main
 from memlog.steps.batch import BatchConfig, batch
 from memlog.steps.map import MapConfig
-from memlog.steps.ray_pool import KILL_HOOK
+from memlog.steps.ray_pool import Node, cluster_nodes
 from tests.same_outputs import assert_same_outputs, reference
 from tests.conftest import FIXTURES, ROOT, shared
 from tests.stand_in import SWITCH_ENV
+from tests.worker_kill import kill_one_worker
 
 
 LOGS = [FIXTURES / "ros2_mcap", FIXTURES / "ros1.bag", FIXTURES / "ros2_sqlite"]
@@ -38,10 +41,10 @@ CFG = BatchConfig(ray=True, workers=2, chunk_frames=1)  # one frame per job: eve
 
 @pytest.fixture(scope="module")
 def ray_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A local Ray instance (2 CPUs) whose workers know the stand-in switch and the kill hook."""
+    """A local Ray instance (2 CPUs) whose workers know the stand-in switch and import this checkout."""
     d = tmp_path_factory.mktemp("ray")
     ray.init(num_cpus=2, include_dashboard=False, logging_level=logging.WARNING,
-             runtime_env={"env_vars": {SWITCH_ENV: str(d / "stand-in.on"), KILL_HOOK: str(d / "kill.armed"),
+             runtime_env={"env_vars": {SWITCH_ENV: str(d / "stand-in.on"),
                                        "PYTHONPATH": str(ROOT)},  # this checkout's memlog and tests/
                           "worker_process_setup_hook": "tests.stand_in.install"})
     try:
@@ -77,6 +80,10 @@ def test_three_formats_on_ray_give_the_local_outputs_and_resume(
     assert [r.status for r in res.logs] == ["ok", "ok", "ok"] and res.exit_code == 0
     assert res.executor["kind"] == "ray" and res.executor["actors"] == 2 and res.executor["threads"] == 1
     assert res.executor["devices"] == ["cpu"]
+    node = ray.get_runtime_context().get_node_id()  # the plan is the nodes Ray reports, per node
+    assert cluster_nodes() == [Node(2.0, 0.0, node)]
+    assert res.executor["nodes"] == [{"node": node, "actors": 2, "gpus": 0.0}]
+    assert (res.executor["cluster_cpus"], res.executor["cluster_gpus"]) == (2.0, 0.0)
     for r in res.logs:
         assert_same_outputs(r.outputs, want[Path(r.log).name])
         assert r.worker_failures == 0
@@ -116,9 +123,11 @@ def test_shared_logs_on_ray_give_the_local_outputs(tmp_path: Path, stand_in: Non
 
 
 def test_a_worker_killed_mid_task_is_retried(tmp_path: Path, stand_in: None, ray_dir: Path,
-                                             want: dict[str, dict[str, Path]]) -> None:
+                                             want: dict[str, dict[str, Path]],
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
     armed = ray_dir / "kill.armed"
     armed.touch()  # the first worker to finish a job removes it and dies before returning the result
+    kill_one_worker(monkeypatch, armed)
     res = batch([FIXTURES / "ros1.bag"], tmp_path, CFG)
     assert not armed.exists()  # a worker did die
     r = res.logs[0]

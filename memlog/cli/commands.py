@@ -359,9 +359,10 @@ def add_batch(sub: Any) -> None:
                         "ADDRESS, $RAY_ADDRESS or a new local Ray instance (needs memlog[ray])")
     p.add_argument("--workers", type=positive_int,
                    help="local worker processes (default: the cores); with --ray, Ray actors (default: as many as "
-                        "the cluster's CPUs, or GPUs, hold)")
+                        "the cluster's nodes hold, each by its own CPUs and GPUs)")
     p.add_argument("--actors-per-gpu", type=positive_int, metavar="N",
-                   help="with --ray on GPUs: actors sharing one GPU (default: CPUs per GPU / --threads, at most 16)")
+                   help="with --ray on GPUs: actors sharing one GPU (default: the node's CPUs per GPU / --threads, "
+                        "at most 16)")
     p.add_argument("--max-retries", type=nonneg_int, help="attempts at a job after its worker died (default 3)")
     p.add_argument("--logs-at-once", type=positive_int, metavar="N",
                    help="logs worked on at the same time, sharing the workers (default 1)")

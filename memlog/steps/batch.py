@@ -275,12 +275,13 @@ class _Executors:
                                 "workers": workers}
             return self.ex
         from memlog.progress import is_quiet
-        from memlog.steps.ray_pool import RayActors, cluster_resources, connect, plan_placement
+        from memlog.steps.ray_pool import RayActors, cluster_nodes, connect, plan_placement
 
         self.own_ray = connect(cfg.ray_address, quiet=is_quiet())
         try:
-            cpus, gpus = cluster_resources()
-            placement = plan_placement(cpus, gpus, workers=cfg.workers, threads=cfg.map.score.threads,
+            nodes = cluster_nodes()
+            cpus, gpus = sum(n.cpus for n in nodes), sum(n.gpus for n in nodes)
+            placement = plan_placement(nodes, workers=cfg.workers, threads=cfg.map.score.threads,
                                        device=cfg.map.score.device, actors_per_gpu=cfg.actors_per_gpu)
             ex = RayActors(placement, device=cfg.map.score.device, max_retries=cfg.max_retries)
         except BaseException:

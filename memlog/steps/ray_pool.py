@@ -5,8 +5,10 @@ the jobs are the steps' own (a module-level function and its picklable arguments
 ``score_chunk(log, config, window, chunk)``), so a step runs on Ray without knowing it. Each
 actor is one long-lived worker process holding the models (loaded once per process through
 :func:`~memlog.steps.parallel.cached`, not once per job) and reserving the CPUs its ONNX Runtime
-threads use, plus a share of a GPU when the cluster has GPUs (:func:`plan_placement`), so actors
-never oversubscribe a node.
+threads use, plus a share of a GPU on a node with GPUs. The actors are planned per node
+(:func:`plan_placement` over :func:`cluster_nodes`: every actor fits the node it is planned on,
+so actors never oversubscribe a node and never wait for a node that does not exist) and pinned
+there (a soft node affinity: an actor whose node is lost is restarted elsewhere).
 
 Fault tolerance: a job is a pure function of its arguments (it reads the log, writes nothing),
 so when an actor's process dies (killed, out of memory, node lost) Ray restarts the actor and
@@ -24,24 +26,20 @@ import logging
 import os
 import platform
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 from memlog._version import __version__
 from memlog.errors import ConfigError, MemlogError
 from memlog.steps.parallel import Job, cpu_count
 
-__all__ = ["RAY_INSTALL", "KILL_HOOK", "ray_available", "require_ray", "connect", "cluster_resources", "Placement",
-           "plan_placement", "RayActors", "WorkerLostError"]
+__all__ = ["RAY_INSTALL", "ray_available", "require_ray", "connect", "Node", "cluster_nodes", "NodePlacement",
+           "Placement", "plan_placement", "RayActors", "WorkerLostError"]
 
 R = TypeVar("R")
 
 RAY_INSTALL = "pip install 'memlog[ray]'"
-#: Test hook: when this environment variable names a file that exists in a worker's environment,
-#: the first worker to finish a job removes the file and exits before returning the result (a
-#: worker killed mid-task, exactly once); the job must then be retried.
-KILL_HOOK = "MEMLOG_TEST_KILL_WORKER"
 
 
 #: Default cap on actors sharing one GPU (each holds a ResMem session, ~1-1.5 GB of GPU memory).
@@ -91,56 +89,134 @@ def connect(address: str | None = None, *, quiet: bool = True) -> bool:
     return True
 
 
-def cluster_resources() -> tuple[float, float]:
-    """(CPUs, GPUs) of the connected Ray cluster."""
+class Node(NamedTuple):
+    """One alive node of a Ray cluster: its CPUs and GPUs (totals, as the node declares them)
+    and its Ray node id ("" for a node described without Ray, as in a plan made by hand)."""
+
+    cpus: float
+    gpus: float
+    id: str = ""
+
+
+def cluster_nodes() -> list[Node]:
+    """The alive nodes of the connected Ray cluster (``ray.nodes()``), with their CPUs and GPUs."""
     ray = _ray()
 
-    res = ray.cluster_resources()
-    return float(res.get("CPU", 0.0)), float(res.get("GPU", 0.0))
+    nodes = []
+    for n in ray.nodes():
+        if n.get("Alive"):
+            res = n.get("Resources") or {}
+            nodes.append(Node(float(res.get("CPU", 0.0)), float(res.get("GPU", 0.0)), str(n.get("NodeID", ""))))
+    return nodes
+
+
+@dataclass(frozen=True)
+class NodePlacement:
+    """``actors`` actors on the node ``node`` (a Ray node id; "" for a node without one), each
+    reserving ``gpus`` of a GPU there (0: CPU actors)."""
+
+    node: str
+    actors: int
+    gpus: float
 
 
 @dataclass(frozen=True)
 class Placement:
     """How jobs are placed: ``actors`` worker processes, each reserving ``threads`` CPUs (its ONNX
-    Runtime and OpenCV threads) and ``gpus`` of a GPU (0: CPU actors)."""
+    Runtime and OpenCV threads); ``gpus``: the GPU share of a GPU actor (0: CPU actors only; the
+    largest share when GPU nodes differ); ``nodes``: how many actors, with which GPU share, on
+    each node (empty: anywhere Ray puts them, each with ``gpus``)."""
 
     actors: int
     threads: int
     gpus: float
+    nodes: tuple[NodePlacement, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        d = asdict(self)
+        d["nodes"] = list(d["nodes"])  # as JSON reads it back
+        return d
 
 
-def plan_placement(cpus: float, gpus: float, *, workers: int | None = None, threads: int = 0,
-                   device: str = "auto", actors_per_gpu: int | None = None) -> Placement:
-    """The actors for a cluster of ``cpus`` CPUs and ``gpus`` GPUs.
+def _node_capacity(node: Node, threads: int, device: str, actors_per_gpu: int | None) -> tuple[int, float]:
+    """(actors, GPU share of each) that one node holds by :func:`plan_placement`'s rule."""
+    if node.cpus < threads:
+        return 0, 0.0
+    if device != "cpu" and node.gpus > 0:
+        per_gpu = actors_per_gpu or max(1, min(MAX_ACTORS_PER_GPU, int(node.cpus / node.gpus) // threads))
+        return min(int(node.gpus * per_gpu + 1e-9), int(node.cpus // threads)), 1.0 / per_gpu
+    if device == "cuda":  # the models must run on a GPU: a CPU-only node holds no actor
+        return 0, 0.0
+    return int(node.cpus // threads), 0.0
 
-    CPU only (no GPU, or ``device`` cpu): ``threads`` CPUs per actor (default 1) and as many
-    actors as the CPUs hold, or ``workers``. With GPUs (``device`` auto or cuda):
-    ``actors_per_gpu`` actors share each GPU (default: the CPUs per GPU over ``threads``, at most
-    :data:`MAX_ACTORS_PER_GPU`): decoding, the detector and entropy stay on the CPU (~0.2
-    core-seconds per frame) while ResMem needs ~5 ms of an H100 per frame, so a GPU needs the
-    frames of many CPU workers; the cap bounds the GPU memory of their ONNX Runtime sessions.
-    Raises :class:`ConfigError` when the cluster cannot hold what was asked."""
+
+def _spread(caps: list[int], n: int) -> list[int]:
+    """``n`` actors over nodes that hold at most ``caps[i]`` each, one node after the other in turn."""
+    got = [0] * len(caps)
+    n = min(n, sum(caps))
+    while n > 0:
+        for i, cap in enumerate(caps):
+            if n > 0 and got[i] < cap:
+                got[i] += 1
+                n -= 1
+    return got
+
+
+def _nodes_text(nodes: Sequence[Node]) -> str:
+    return "; ".join(f"{n.cpus:g} CPU(s)" + (f" + {n.gpus:g} GPU(s)" if n.gpus else "") for n in nodes)
+
+
+def plan_placement(nodes: Sequence[Node], *, workers: int | None = None, threads: int = 0, device: str = "auto",
+                   actors_per_gpu: int | None = None) -> Placement:
+    """The actors for a cluster of ``nodes`` (each with its CPUs and GPUs), planned node by node:
+    every actor is planned on a node that holds its CPUs and its GPU share.
+
+    On one node: without GPUs (or with ``device`` cpu), ``threads`` CPUs per actor (default 1)
+    and as many actors as the node's CPUs hold. With GPUs (``device`` auto or cuda), every actor
+    on the node shares a GPU: ``actors_per_gpu`` actors per GPU (default: the node's CPUs per GPU
+    over ``threads``, at most :data:`MAX_ACTORS_PER_GPU`), as many as its GPUs and CPUs hold:
+    decoding, the detector and entropy stay on the CPU (~0.2 core-seconds per frame) while ResMem
+    needs ~5 ms of an H100 per frame, so a GPU needs the frames of many CPU workers; the cap
+    bounds the GPU memory of their ONNX Runtime sessions. With ``device`` auto a CPU-only node
+    holds CPU actors; with ``device`` cuda it holds none.
+
+    The placement is the sum over the nodes; ``workers`` asks for that many actors instead, taken
+    from the GPU nodes first, then the CPU nodes, spread over the nodes in turn. Raises
+    :class:`ConfigError` naming what is missing when no node holds one actor, or the nodes cannot
+    hold ``workers`` actors."""
     t = threads or 1
-    if device == "cuda" and gpus <= 0:
+    if device == "cuda" and not any(n.gpus > 0 for n in nodes):
         raise ConfigError("--device cuda: the Ray cluster has no GPU (drop --device, or use --device cpu)")
-    if cpus < t:
-        raise ConfigError(f"--threads {t}: the Ray cluster has only {cpus:g} CPU(s)")
-    if device != "cpu" and gpus > 0:
-        per_gpu = actors_per_gpu or max(1, min(MAX_ACTORS_PER_GPU, int(cpus / gpus) // t))
-        share = 1.0 / per_gpu
-        n = workers or max(1, min(int(gpus * per_gpu), int(cpus // t)))
-        if n * share > gpus + 1e-9 or n * t > cpus:
-            raise ConfigError(f"--workers {n}: {n} actors with {t} CPU(s) and {share:g} GPU each do not fit the Ray "
-                              f"cluster ({cpus:g} CPUs, {gpus:g} GPUs)")
-        return Placement(n, t, share)
-    n = workers or max(1, int(cpus // t))
-    if n * t > cpus:
-        raise ConfigError(f"--workers {n} with --threads {t} needs {n * t} CPUs; the Ray cluster has {cpus:g} "
-                          "(fewer --workers or --threads)")
-    return Placement(n, t, 0.0)
+    if not nodes:
+        raise ConfigError("the Ray cluster has no alive node")
+    caps = [_node_capacity(n, t, device, actors_per_gpu) for n in nodes]
+    total = sum(c for c, _ in caps)
+    if total == 0:
+        usable = [n for n in nodes if n.gpus > 0] if device == "cuda" else list(nodes)
+        kind = "GPU node" if device == "cuda" else "node"
+        most = max((n.cpus for n in usable), default=0.0)
+        if most < t:
+            raise ConfigError(f"--threads {t}: an actor needs {t} CPU(s) on one node; the largest {kind} of the Ray "
+                              f"cluster has {most:g} (nodes: {_nodes_text(nodes)})")
+        raise ConfigError(f"no Ray node holds one actor of {t} CPU(s) and its GPU share: a node's GPUs times its "
+                          f"actors per GPU is below 1 (nodes: {_nodes_text(nodes)}); raise --actors-per-gpu")
+    if workers is not None and workers > total:
+        gpu_part = " and a GPU share" if any(share for _, share in caps) else ""
+        raise ConfigError(f"--workers {workers}: the Ray cluster's nodes hold at most {total} actor(s) of {t} CPU(s)"
+                          f"{gpu_part} each (nodes: {_nodes_text(nodes)}); use fewer --workers or --threads")
+    counts = [c for c, _ in caps]
+    if workers is not None:
+        gpu = [k for k, (_, share) in enumerate(caps) if share > 0]
+        cpu = [k for k, (_, share) in enumerate(caps) if share == 0]
+        counts = [0] * len(caps)
+        left = workers
+        for group in (gpu, cpu):
+            got = _spread([caps[k][0] for k in group], min(left, sum(caps[k][0] for k in group)))
+            for k, g in zip(group, got):
+                counts[k] = g
+            left -= sum(got)
+    placed = tuple(NodePlacement(n.id, c, share) for n, c, (_, share) in zip(nodes, counts, caps) if c > 0)
+    return Placement(sum(p.actors for p in placed), t, max((p.gpus for p in placed), default=0.0), placed)
 
 
 class _Worker:
@@ -161,32 +237,22 @@ class _Worker:
         """Who this worker is; raises the model layer's error when ``device`` cannot be used here."""
         from memlog.models.runtime import choose_providers
 
-        return {"pid": os.getpid(), "host": platform.node(), "memlog": __version__,
-                "providers": choose_providers(device), "gpus": os.environ.get("CUDA_VISIBLE_DEVICES")}
+        return {"pid": os.getpid(), "host": platform.node(), "node": _ray().get_runtime_context().get_node_id(),
+                "memlog": __version__, "providers": choose_providers(device),
+                "gpus": os.environ.get("CUDA_VISIBLE_DEVICES")}
 
     def run(self, fn: Callable[..., Any], job: Job) -> tuple[int, Any]:
-        result = fn(*job)
-        _kill_hook()
-        return os.getpid(), result
-
-
-def _kill_hook() -> None:
-    path = os.environ.get(KILL_HOOK)
-    if not path:
-        return
-    try:
-        os.unlink(path)  # exactly one worker wins
-    except OSError:
-        return
-    os._exit(1)
+        return os.getpid(), fn(*job)
 
 
 class RayActors:
-    """An executor of ``placement.actors`` Ray actors. Each actor has at most ``depth`` jobs queued
-    (the next one is ready when it finishes) and at most ``ahead`` jobs are in flight beyond the
-    one whose result is awaited next (bounded memory for results waiting to be merged). A dead
-    actor is restarted by Ray and its job run again up to ``max_retries`` times; :attr:`restarts`
-    counts the worker processes lost so far."""
+    """An executor of ``placement.actors`` Ray actors, each on the node ``placement.nodes`` plans
+    it on (a soft node affinity: it waits for room there, and goes elsewhere only when that node
+    is gone). Each actor has at most ``depth`` jobs queued (the next one is ready when it
+    finishes) and at most ``ahead`` jobs are in flight beyond the one whose result is awaited
+    next (bounded memory for results waiting to be merged). A dead actor is restarted by Ray and
+    its job run again up to ``max_retries`` times; :attr:`restarts` counts the worker processes
+    lost so far."""
 
     def __init__(self, placement: Placement, *, device: str = "auto", max_retries: int = 3, depth: int = 2,
                  ahead: int | None = None, start_timeout_s: float = 600.0) -> None:
@@ -202,9 +268,14 @@ class RayActors:
         self.depth = depth
         self.ahead = ahead if ahead is not None else depth * placement.actors
         self.restarts = 0
-        cls = ray.remote(_Worker).options(num_cpus=placement.threads, num_gpus=placement.gpus,
-                                          max_restarts=-1, max_task_retries=max_retries)
-        self._actors = [cls.remote(placement.threads) for _ in range(placement.actors)]
+        affinity = importlib.import_module("ray.util.scheduling_strategies").NodeAffinitySchedulingStrategy
+        cls = ray.remote(_Worker)
+        self._actors = []
+        for group in placement.nodes or (NodePlacement("", placement.actors, placement.gpus),):
+            pin = {"scheduling_strategy": affinity(group.node, soft=True)} if group.node else {}
+            one = cls.options(num_cpus=placement.threads, num_gpus=group.gpus, max_restarts=-1,
+                              max_task_retries=max_retries, **pin)
+            self._actors += [one.remote(placement.threads) for _ in range(group.actors)]
         try:
             self.info = ray.get([a.info.remote(device) for a in self._actors], timeout=start_timeout_s)
         except ray.exceptions.GetTimeoutError:
