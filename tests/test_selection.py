@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from memlog.errors import ConfigError, EvaluationError, MemlogError
+from memlog.errors import ConfigError, EvaluationError, MemlogError, SelectionError
 from memlog.selection import (
     SELECTORS,
     CalibrateConfig,
@@ -94,21 +94,21 @@ def mid_ranks(x: F64) -> F64:
 
 
 def test_score_table_validates_lengths_and_shapes() -> None:
-    with pytest.raises(EvaluationError, match="length"):
+    with pytest.raises(SelectionError, match="length"):
         make_table([0.1, 0.2], [0.1], [0.3, 0.4])
-    with pytest.raises(EvaluationError, match="positions"):
+    with pytest.raises(SelectionError, match="positions"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], positions=np.zeros((2, 4)))
-    with pytest.raises(EvaluationError, match="descriptors"):
+    with pytest.raises(SelectionError, match="descriptors"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], descriptors=np.ones((3, 4)))
-    with pytest.raises(EvaluationError, match="L2-normalised"):
+    with pytest.raises(SelectionError, match="L2-normalised"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], descriptors=np.ones((2, 4)))
-    with pytest.raises(EvaluationError, match="strictly increasing"):
+    with pytest.raises(SelectionError, match="strictly increasing"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], index=[3, 3])
-    with pytest.raises(EvaluationError, match="non-decreasing"):
+    with pytest.raises(SelectionError, match="non-decreasing"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], t_ns=[5, 4])
-    with pytest.raises(EvaluationError, match="integers"):
+    with pytest.raises(SelectionError, match="integers"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], index=[0.0, 1.0])
-    assert issubclass(EvaluationError, MemlogError)
+    assert issubclass(SelectionError, MemlogError)
     # NaN rows of descriptors/positions are allowed (unknown)
     d = unit_rows(np.ones((2, 4)))
     d[1] = np.nan
@@ -129,7 +129,7 @@ def test_selection_to_dict_is_json_and_uses_frame_indices() -> None:
     assert math.isclose(d["fraction"], sel.n_kept / 30)
     assert sum(d["reason_counts"].values()) == 30 - sel.n_kept
     assert all(i >= 100 for i, _ in d["dropped"])
-    with pytest.raises(EvaluationError):
+    with pytest.raises(SelectionError):
         Selection(mode="x", index=np.arange(2), keep=np.array([True, False]), reason=[None, None])
 
 
@@ -260,9 +260,9 @@ def test_calibrate_errors() -> None:
     for bad in (0.0, -0.1, 1.5, float("nan")):
         with pytest.raises(ConfigError):
             calibrate(t, bad)
-    with pytest.raises(EvaluationError, match="empty"):
+    with pytest.raises(SelectionError, match="empty"):
         calibrate(make_table([], [], []), 0.5)
-    with pytest.raises(EvaluationError, match="entropy"):
+    with pytest.raises(SelectionError, match="entropy"):
         calibrate(make_table([0.5, 0.6], [1.0, 1.0], [np.nan, np.nan]), 0.5)
 
 
@@ -621,3 +621,36 @@ def test_random_baseline() -> None:
     assert u.kept_indices.tolist() == (7 + uniform_indices(30, 5)).tolist()
     r = baseline_selection(t, 5, seed=1)
     assert r.n_kept == 5 and set(r.reason) == {None, "not-sampled"}
+
+
+# ---------------------------------------------------------------- the selection layer's own error class
+
+
+def test_selection_inputs_raise_selection_error_not_evaluation_error() -> None:
+    """Invalid inputs of the selection layer (layer 4) raise its own SelectionError, never the
+    evaluation layer's EvaluationError; both stay MemlogErrors that are not UsageErrors (exit 1)."""
+    from memlog.errors import UsageError
+    from memlog.selection.distinctiveness import distinctiveness, margins
+
+    t = random_table(6, seed=1)
+    unit = unit_rows(np.ones((6, 4)))
+    cases: list[tuple[str, Any]] = [
+        ("empty", lambda: calibrate(make_table([], [], []), 0.5)),
+        ("entropy", lambda: calibrate(make_table([0.5, 0.6], [1.0, 1.0], [np.nan, np.nan]), 0.5)),
+        ("shape", lambda: margins(np.ones(5))),
+        ("shape", lambda: distinctiveness(np.ones((2, 3, 4)))),
+        ("bool mask", lambda: find_duplicates(make_table(t.ms, t.ss, t.es, descriptors=unit), np.ones(5, bool))),
+        ("bool mask", lambda: find_duplicates(make_table(t.ms, t.ss, t.es, descriptors=unit), np.ones(6))),
+        ("different frames", lambda: drop_duplicates(
+            make_table(t.ms, t.ss, t.es, descriptors=unit), select(random_table(5, seed=1), "paper"))),
+        ("length", lambda: make_table([0.1, 0.2], [0.1], [0.3, 0.4])),
+        ("non-decreasing", lambda: make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], t_ns=[5, 4])),
+        ("row mask", lambda: t.take(np.ones(3, dtype=bool))),
+        ("reason", lambda: Selection(mode="x", index=np.arange(2), keep=np.array([True, False]),
+                                     reason=[None, None])),
+    ]
+    for match, call in cases:
+        with pytest.raises(SelectionError, match=match) as info:
+            call()
+        assert not isinstance(info.value, EvaluationError), match
+    assert issubclass(SelectionError, MemlogError) and not issubclass(SelectionError, UsageError)
