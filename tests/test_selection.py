@@ -654,3 +654,43 @@ def test_selection_inputs_raise_selection_error_not_evaluation_error() -> None:
             call()
         assert not isinstance(info.value, EvaluationError), match
     assert issubclass(SelectionError, MemlogError) and not issubclass(SelectionError, UsageError)
+
+
+# ---------------------------------------------------------------- the segment defaults
+
+
+def test_segment_defaults_have_one_source_and_combined_score_defaults_to_geometric() -> None:
+    """combined_score without ``combine`` is the weighted geometric mean (the documented default),
+    and every entry point's segment default is the one in SEGMENT_DEFAULTS."""
+    t = random_table(50, seed=31)
+    # behaviour first, against a hand-computed expectation: (MS*SS*ES)^(1/3)
+    from memlog.selection import combined_score
+
+    np.testing.assert_allclose(combined_score(t), (t.ms * t.ss * t.es) ** (1 / 3), rtol=1e-12)
+
+    from memlog.selection.config import SelectionConfig
+    from memlog.selection.segment import SEGMENT_DEFAULTS
+
+    # the documented choices (README "defaults" table, segment module docstring)
+    assert (SEGMENT_DEFAULTS.combine, SEGMENT_DEFAULTS.keep_fraction, SEGMENT_DEFAULTS.min_ss) == ("geometric", 0.25, 0.1)
+    keys = ("by", "keep_fraction", "combine", "weights", "min_ms", "min_ss", "min_es", "view_distance",
+            "distinct_weight")
+    want = {k: getattr(SEGMENT_DEFAULTS, k) for k in keys}
+    # SELECTORS["segment"] (what select() and so SelectionConfig.run start from)
+    assert {k: SELECTORS["segment"][k] for k in keys} == want
+    # SegmentConfig's field defaults (a size must be given; keep_fraction is that size here)
+    seg = SegmentConfig(keep_fraction=SEGMENT_DEFAULTS.keep_fraction)
+    assert {k: getattr(seg, k) for k in keys} == want
+    # SelectionConfig's segment settings (keep_fraction filled in when no size is given)
+    settings = SelectionConfig().segment_settings()
+    assert {k: settings[k] for k in keys} == want
+    # combined_score's own parameter defaults
+    import inspect
+
+    params = inspect.signature(combined_score).parameters
+    assert params["combine"].default == want["combine"] and params["weights"].default == want["weights"]
+    assert params["distinct_weight"].default == want["distinct_weight"]
+    # select_segments with no config: the default keep fraction of segments, picked by the default combine
+    sel = select_segments(t)
+    assert sel.info["n_bins"] == math.floor(0.25 * 50 + 0.5) and sel.info["combine"] == "geometric"
+    assert sel.keep.tolist() == select_segments(t, seg).keep.tolist()

@@ -32,7 +32,7 @@ ties, in (0, 1)), invariant to any increasing transform; a criterion that is con
 drive (SS == 1.0 everywhere) ranks 0.5 everywhere and drops out. Ties go to the earliest frame
 of the segment.
 
-Defaults (chosen on the shared Nordland slice, summer -> winter, thumbnail descriptor; the grid
+Defaults (:data:`SEGMENT_DEFAULTS`, the one source every entry point reads; chosen on the shared Nordland slice, summer -> winter, thumbnail descriptor; the grid
 is ``benchmarks/selection_table.py --tune``): geometric beat rank at 25 % of the frames (R@1
 0.104 vs 0.092 map-only) and matched it at 50/75 %; equal weights were as good as any other
 weighting tried; minimum scores only for staticity (``min_ss=0.1``: a view almost fully covered
@@ -54,7 +54,8 @@ from memlog.selection._checks import finite_number, fraction, positive_int, posi
 from memlog.selection.paper import codes_to_reasons, first_failing
 from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
 
-__all__ = ["SegmentConfig", "select_segments", "segment_ids", "combined_score", "geometric_score", "percentile_ranks"]
+__all__ = ["SegmentConfig", "SegmentDefaults", "SEGMENT_DEFAULTS", "select_segments", "segment_ids",
+           "combined_score", "geometric_score", "percentile_ranks"]
 
 SegmentBy = Literal["auto", "distance", "time", "count", "view"]
 Combine = Literal["rank", "geometric"]
@@ -63,15 +64,17 @@ _COMBINE = ("rank", "geometric")
 
 
 @dataclass(frozen=True)
-class SegmentConfig:
-    """Settings of :func:`select_segments` (set exactly one of ``keep_fraction``,
-    ``spacing_m``, ``spacing_s``, ``spacing_frames``; none for ``by="view"``)."""
+class SegmentDefaults:
+    """The segment selector's defaults (chosen on the shared Nordland slice: module docstring).
+
+    The one source: :class:`SegmentConfig`, :func:`combined_score`, :func:`select_segments` without
+    a config, ``SELECTORS["segment"]`` (:mod:`memlog.selection.selectors`) and
+    :class:`~memlog.selection.config.SelectionConfig` all read :data:`SEGMENT_DEFAULTS`.
+    ``keep_fraction`` is the size used when no spacing is given.
+    """
 
     by: SegmentBy = "auto"
-    keep_fraction: float | None = None
-    spacing_m: float | None = None
-    spacing_s: float | None = None
-    spacing_frames: int | None = None
+    keep_fraction: float = 0.25
     view_distance: float = 0.3
     min_ms: float = 0.0
     min_ss: float = 0.1
@@ -79,6 +82,33 @@ class SegmentConfig:
     weights: tuple[float, float, float] = (1.0, 1.0, 1.0)  # (ms, ss, es)
     combine: Combine = "geometric"
     distinct_weight: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """The defaults as a plain dict (``weights`` a tuple), in field order."""
+        return asdict(self)
+
+
+#: The segment defaults every entry point reads (see :class:`SegmentDefaults`).
+SEGMENT_DEFAULTS = SegmentDefaults()
+
+
+@dataclass(frozen=True)
+class SegmentConfig:
+    """Settings of :func:`select_segments` (set exactly one of ``keep_fraction``,
+    ``spacing_m``, ``spacing_s``, ``spacing_frames``; none for ``by="view"``)."""
+
+    by: SegmentBy = SEGMENT_DEFAULTS.by
+    keep_fraction: float | None = None
+    spacing_m: float | None = None
+    spacing_s: float | None = None
+    spacing_frames: int | None = None
+    view_distance: float = SEGMENT_DEFAULTS.view_distance
+    min_ms: float = SEGMENT_DEFAULTS.min_ms
+    min_ss: float = SEGMENT_DEFAULTS.min_ss
+    min_es: float = SEGMENT_DEFAULTS.min_es
+    weights: tuple[float, float, float] = SEGMENT_DEFAULTS.weights  # (ms, ss, es)
+    combine: Combine = SEGMENT_DEFAULTS.combine
+    distinct_weight: float = SEGMENT_DEFAULTS.distinct_weight
 
     def __post_init__(self) -> None:
         if self.by not in _BY:
@@ -150,13 +180,13 @@ def percentile_ranks(x: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def combined_score(
     table: ScoreTable,
-    weights: tuple[float, float, float] = (1.0, 1.0, 1.0),
-    combine: Combine = "rank",
-    distinct_weight: float = 0.0,
+    weights: tuple[float, float, float] = SEGMENT_DEFAULTS.weights,
+    combine: Combine = SEGMENT_DEFAULTS.combine,
+    distinct_weight: float = SEGMENT_DEFAULTS.distinct_weight,
 ) -> NDArray[np.float64]:
     """Per-frame combined score of (MS, SS, ES) with weights (ms, ss, es), and of the
-    distinctiveness DS with ``distinct_weight``; NaN if any used score is NaN. See the module
-    docstring for the choice."""
+    distinctiveness DS with ``distinct_weight``; NaN if any used score is NaN. Defaults: those of
+    :data:`SEGMENT_DEFAULTS` (the geometric mean); see the module docstring for the choice."""
     if distinct_weight > 0 and table.ds is None:
         raise ConfigError("distinct_weight needs the table's distinctiveness (ds) column")
     if combine == "geometric":
@@ -319,8 +349,9 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
 
 def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> Selection:
     """Keep the best frame (by :func:`combined_score`) of each place segment among those
-    passing the minimum thresholds; segments with no passing frame become gaps."""
-    cfg = config if config is not None else SegmentConfig(keep_fraction=0.25)
+    passing the minimum thresholds; segments with no passing frame become gaps. Without a
+    config: :data:`SEGMENT_DEFAULTS` (``keep_fraction`` 0.25)."""
+    cfg = config if config is not None else SegmentConfig(keep_fraction=SEGMENT_DEFAULTS.keep_fraction)
     n = table.n
     seg, info = segment_ids(table, cfg)
     code = first_failing(table, cfg.min_ms, cfg.min_ss, cfg.min_es)
