@@ -694,3 +694,82 @@ def test_segment_defaults_have_one_source_and_combined_score_defaults_to_geometr
     sel = select_segments(t)
     assert sel.info["n_bins"] == math.floor(0.25 * 50 + 0.5) and sel.info["combine"] == "geometric"
     assert sel.keep.tolist() == select_segments(t, seg).keep.tolist()
+
+
+# ---------------------------------------------------------------- distance segments across a GNSS gap
+
+
+def gap_drive(speed: Any = 2.0, radius: float = 200.0) -> tuple[ScoreTable, NDArray[np.bool_], F64]:
+    """10 Hz frames for 300 s along a circle of ``radius`` metres at ``speed`` m/s (a number or a
+    function of time in seconds); positions unknown (NaN) from 120 s to 180 s, a tunnel. Returns the
+    table, the gap rows and the frame times in seconds."""
+    n = 3000
+    t_s = np.arange(n) / 10.0
+    v = speed(t_s) if callable(speed) else np.full(n, float(speed))
+    arc = np.concatenate([[0.0], np.cumsum(v[:-1] * 0.1)])
+    pos = np.c_[radius * np.sin(arc / radius), radius * (1 - np.cos(arc / radius))]
+    gap = (t_s >= 120.0) & (t_s < 180.0)
+    pos[gap] = np.nan
+    table = random_table(n, seed=5, positions=pos, t_ns=(np.arange(n) * 100_000_000).astype(np.int64))
+    return table, gap, t_s
+
+
+def whole_segments(seg: NDArray[np.int64], rows: NDArray[np.bool_]) -> list[int]:
+    """Segments lying wholly within ``rows``."""
+    return [int(s) for s in np.unique(seg[rows]) if rows[seg == s].all()]
+
+
+@pytest.mark.parametrize("size", [{"spacing_m": 10.0}, {"keep_fraction": 0.02}])
+def test_distance_segments_are_cut_by_time_across_a_gnss_gap(size: dict[str, float]) -> None:
+    from memlog.selection import segment_ids
+
+    table, gap, t_s = gap_drive()
+    seg, info = segment_ids(table, SegmentConfig(by="distance", **size))
+    assert np.all(np.diff(seg) >= 0) and np.all(np.diff(seg) <= 1) and seg[0] == 0  # consecutive ids
+    # 2 m/s everywhere: 10 m segments are 5 s long (keep_fraction 0.02 of 3000 frames: 60 segments
+    # of 600 m), also in the tunnel (before the fix: its 60 s were one segment, the last one of the
+    # known stretch before it)
+    rest = len(whole_segments(seg, ~gap)) / 240.0
+    in_gap = len(whole_segments(seg, gap)) / 60.0
+    assert rest == pytest.approx(0.2, rel=0.05)
+    assert in_gap == pytest.approx(rest, rel=0.1)
+    durations = [np.ptp(t_s[seg == s]) + 0.1 for s in whole_segments(seg, gap)]
+    assert np.allclose(durations, 5.0, atol=0.15)
+    # info says how many segments were cut by time in the gap
+    assert info["position_gaps"] == 1
+    assert info["time_segments"] == len(np.unique(seg[gap]))
+    assert 11 <= info["time_segments"] <= 13
+
+
+def test_gnss_gap_length_from_the_speed_around_it_or_the_straight_line() -> None:
+    from memlog.selection import segment_ids
+
+    cfg = SegmentConfig(by="distance", spacing_m=10.0)
+    # a tunnel that loops (circle of 180 m: the fixes either side of it are ~0 m apart), at 3 m/s
+    # around it while the drive's ends crawl at 0.5 m/s: the tunnel's 60 s are 180 m, 18 segments
+    loop = lambda t: np.where((t >= 60.0) & (t < 240.0), 3.0, 0.5)  # noqa: E731
+    table, gap, _ = gap_drive(loop, radius=180.0 / (2 * np.pi))
+    seg, info = segment_ids(table, cfg)
+    assert len(whole_segments(seg, gap)) in (17, 18) and info["time_segments"] in (18, 19)
+    # a straight tunnel driven faster (3 m/s) than around it (1 m/s): the straight line between the
+    # fixes (180 m) is longer than speed x time (60 m) and is the gap's length
+    fast = lambda t: np.where((t >= 120.0) & (t < 180.0), 3.0, 1.0)  # noqa: E731
+    table, gap, _ = gap_drive(fast, radius=1e9)
+    seg, info = segment_ids(table, cfg)
+    assert len(whole_segments(seg, gap)) in (17, 18) and info["time_segments"] in (18, 19)
+    assert info["gap_length_m"] == pytest.approx(180.0, abs=0.5)
+
+
+def test_a_missing_fix_at_the_fixes_rate_is_no_gap() -> None:
+    from memlog.selection import segment_ids
+
+    table, gap, _ = gap_drive()
+    pos = table.positions
+    assert pos is not None
+    pos = pos.copy()
+    pos[gap] = pos[np.flatnonzero(gap)[0] - 1]  # the tunnel filled in: the robot stood there
+    pos[[500, 2500, 2501]] = np.nan  # one missing fix, two missing fixes
+    t = ScoreTable(index=table.index, t_ns=table.t_ns, ms=table.ms, ss=table.ss, es=table.es, positions=pos)
+    seg, info = segment_ids(t, SegmentConfig(by="distance", spacing_m=10.0))
+    assert info["position_gaps"] == 0 and info["time_segments"] == 0
+    assert len(set(seg[np.flatnonzero(gap)[0] - 1 : np.flatnonzero(gap)[-1] + 1].tolist())) == 1  # standing: one
