@@ -747,13 +747,13 @@ def test_gnss_gap_length_from_the_speed_around_it_or_the_straight_line() -> None
     cfg = SegmentConfig(by="distance", spacing_m=10.0)
     # a tunnel that loops (circle of 180 m: the fixes either side of it are ~0 m apart), at 3 m/s
     # around it while the drive's ends crawl at 0.5 m/s: the tunnel's 60 s are 180 m, 18 segments
-    loop = lambda t: np.where((t >= 60.0) & (t < 240.0), 3.0, 0.5)  # noqa: E731
+    loop = lambda t: np.where((t >= 60.0) & (t < 240.0), 3.0, 0.5)
     table, gap, _ = gap_drive(loop, radius=180.0 / (2 * np.pi))
     seg, info = segment_ids(table, cfg)
     assert len(whole_segments(seg, gap)) in (17, 18) and info["time_segments"] in (18, 19)
     # a straight tunnel driven faster (3 m/s) than around it (1 m/s): the straight line between the
     # fixes (180 m) is longer than speed x time (60 m) and is the gap's length
-    fast = lambda t: np.where((t >= 120.0) & (t < 180.0), 3.0, 1.0)  # noqa: E731
+    fast = lambda t: np.where((t >= 120.0) & (t < 180.0), 3.0, 1.0)
     table, gap, _ = gap_drive(fast, radius=1e9)
     seg, info = segment_ids(table, cfg)
     assert len(whole_segments(seg, gap)) in (17, 18) and info["time_segments"] in (18, 19)
