@@ -268,8 +268,8 @@ def test_blank_frames_stay_zero_after_whitening() -> None:
     idx, sims = match(q[3:], refs, k=len(refs))
     assert sims[0][np.isin(idx[0], [10, 11, 12])].tolist() == [0.0, 0.0, 0.0]  # a real query: blank refs 0
     # the describer: a black frame gives the zero vector before and after whitening
-    base = make_describer("thumbnail")
-    wd = WhitenedDescriber(base, fit_whitening(_data(n=64, d=2048, seed=3)))
+    base = make_describer("thumbnail", width=32, height=16)  # 512-d: a quick fit
+    wd = WhitenedDescriber(base, fit_whitening(_data(n=64, d=512, seed=3)))
     rng = np.random.default_rng(0)
     black = np.zeros((48, 64, 3), dtype=np.uint8)
     textured = rng.integers(0, 256, size=(48, 64, 3), dtype=np.uint8)
