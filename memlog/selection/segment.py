@@ -16,7 +16,7 @@ exist and the robot moved, else time when the timestamps span > 0, else frame co
 Bins that hold no frame (the robot jumped, a time gap) are not segments.
 
 Position gaps (``"distance"``). The coordinate is the path length through the known positions
-(rows with any NaN coordinate are unknown); a row between two consecutive fixes is placed between
+(rows with a NaN or infinite coordinate are unknown); a row between two consecutive fixes is placed between
 them in proportion to its time. A pair of consecutive fixes is a *gap* when they are more than
 ``GAP_FACTOR = 3`` typical fix intervals apart in time (the median interval between consecutive
 fixes over the drive: one or two missed fixes are not a gap, a tunnel is), whether or not frames lie
@@ -50,8 +50,9 @@ ties, in (0, 1)), invariant to any increasing transform; a criterion that is con
 drive (SS == 1.0 everywhere) ranks 0.5 everywhere and drops out. Ties go to the earliest frame
 of the segment.
 
-Defaults (:data:`SEGMENT_DEFAULTS`, the one source every entry point reads; chosen on the shared Nordland slice, summer -> winter, thumbnail descriptor; the grid
-is ``benchmarks/selection_table.py --tune``): geometric beat rank at 25 % of the frames (R@1
+Defaults (:data:`SEGMENT_DEFAULTS`, the one source every entry point reads; chosen on the shared
+Nordland slice, summer -> winter, thumbnail descriptor; the grid is
+``benchmarks/selection_table.py --tune``): geometric beat rank at 25 % of the frames (R@1
 0.104 vs 0.092 map-only) and matched it at 50/75 %; equal weights were as good as any other
 weighting tried; minimum scores only for staticity (``min_ss=0.1``: a view almost fully covered
 by vehicles or people is no place), because dropping dark frames (``min_es=0.05``) left tunnel
