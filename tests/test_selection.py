@@ -672,7 +672,8 @@ def test_segment_defaults_have_one_source_and_combined_score_defaults_to_geometr
     from memlog.selection.segment import SEGMENT_DEFAULTS
 
     # the documented choices (README "defaults" table, segment module docstring)
-    assert (SEGMENT_DEFAULTS.combine, SEGMENT_DEFAULTS.keep_fraction, SEGMENT_DEFAULTS.min_ss) == ("geometric", 0.25, 0.1)
+    d = SEGMENT_DEFAULTS
+    assert (d.combine, d.keep_fraction, d.min_ss) == ("geometric", 0.25, 0.1)
     keys = ("by", "keep_fraction", "combine", "weights", "min_ms", "min_ss", "min_es", "view_distance",
             "distinct_weight")
     want = {k: getattr(SEGMENT_DEFAULTS, k) for k in keys}
