@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from memlog.errors import ConfigError, EvaluationError, MemlogError
+from memlog.errors import ConfigError, EvaluationError, MemlogError, SelectionError
 from memlog.selection import (
     SELECTORS,
     CalibrateConfig,
@@ -94,21 +94,21 @@ def mid_ranks(x: F64) -> F64:
 
 
 def test_score_table_validates_lengths_and_shapes() -> None:
-    with pytest.raises(EvaluationError, match="length"):
+    with pytest.raises(SelectionError, match="length"):
         make_table([0.1, 0.2], [0.1], [0.3, 0.4])
-    with pytest.raises(EvaluationError, match="positions"):
+    with pytest.raises(SelectionError, match="positions"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], positions=np.zeros((2, 4)))
-    with pytest.raises(EvaluationError, match="descriptors"):
+    with pytest.raises(SelectionError, match="descriptors"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], descriptors=np.ones((3, 4)))
-    with pytest.raises(EvaluationError, match="L2-normalised"):
+    with pytest.raises(SelectionError, match="L2-normalised"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], descriptors=np.ones((2, 4)))
-    with pytest.raises(EvaluationError, match="strictly increasing"):
+    with pytest.raises(SelectionError, match="strictly increasing"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], index=[3, 3])
-    with pytest.raises(EvaluationError, match="non-decreasing"):
+    with pytest.raises(SelectionError, match="non-decreasing"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], t_ns=[5, 4])
-    with pytest.raises(EvaluationError, match="integers"):
+    with pytest.raises(SelectionError, match="integers"):
         make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], index=[0.0, 1.0])
-    assert issubclass(EvaluationError, MemlogError)
+    assert issubclass(SelectionError, MemlogError)
     # NaN rows of descriptors/positions are allowed (unknown)
     d = unit_rows(np.ones((2, 4)))
     d[1] = np.nan
@@ -129,7 +129,7 @@ def test_selection_to_dict_is_json_and_uses_frame_indices() -> None:
     assert math.isclose(d["fraction"], sel.n_kept / 30)
     assert sum(d["reason_counts"].values()) == 30 - sel.n_kept
     assert all(i >= 100 for i, _ in d["dropped"])
-    with pytest.raises(EvaluationError):
+    with pytest.raises(SelectionError):
         Selection(mode="x", index=np.arange(2), keep=np.array([True, False]), reason=[None, None])
 
 
@@ -260,9 +260,9 @@ def test_calibrate_errors() -> None:
     for bad in (0.0, -0.1, 1.5, float("nan")):
         with pytest.raises(ConfigError):
             calibrate(t, bad)
-    with pytest.raises(EvaluationError, match="empty"):
+    with pytest.raises(SelectionError, match="empty"):
         calibrate(make_table([], [], []), 0.5)
-    with pytest.raises(EvaluationError, match="entropy"):
+    with pytest.raises(SelectionError, match="entropy"):
         calibrate(make_table([0.5, 0.6], [1.0, 1.0], [np.nan, np.nan]), 0.5)
 
 
@@ -621,3 +621,156 @@ def test_random_baseline() -> None:
     assert u.kept_indices.tolist() == (7 + uniform_indices(30, 5)).tolist()
     r = baseline_selection(t, 5, seed=1)
     assert r.n_kept == 5 and set(r.reason) == {None, "not-sampled"}
+
+
+# ---------------------------------------------------------------- the selection layer's own error class
+
+
+def test_selection_inputs_raise_selection_error_not_evaluation_error() -> None:
+    """Invalid inputs of the selection layer (layer 4) raise its own SelectionError, never the
+    evaluation layer's EvaluationError; both stay MemlogErrors that are not UsageErrors (exit 1)."""
+    from memlog.errors import UsageError
+    from memlog.selection.distinctiveness import distinctiveness, margins
+
+    t = random_table(6, seed=1)
+    unit = unit_rows(np.ones((6, 4)))
+    cases: list[tuple[str, Any]] = [
+        ("empty", lambda: calibrate(make_table([], [], []), 0.5)),
+        ("entropy", lambda: calibrate(make_table([0.5, 0.6], [1.0, 1.0], [np.nan, np.nan]), 0.5)),
+        ("shape", lambda: margins(np.ones(5))),
+        ("shape", lambda: distinctiveness(np.ones((2, 3, 4)))),
+        ("bool mask", lambda: find_duplicates(make_table(t.ms, t.ss, t.es, descriptors=unit), np.ones(5, bool))),
+        ("bool mask", lambda: find_duplicates(make_table(t.ms, t.ss, t.es, descriptors=unit), np.ones(6))),
+        ("different frames", lambda: drop_duplicates(
+            make_table(t.ms, t.ss, t.es, descriptors=unit), select(random_table(5, seed=1), "paper"))),
+        ("length", lambda: make_table([0.1, 0.2], [0.1], [0.3, 0.4])),
+        ("non-decreasing", lambda: make_table([0.1, 0.2], [0.1, 0.2], [0.3, 0.4], t_ns=[5, 4])),
+        ("row mask", lambda: t.take(np.ones(3, dtype=bool))),
+        ("reason", lambda: Selection(mode="x", index=np.arange(2), keep=np.array([True, False]),
+                                     reason=[None, None])),
+    ]
+    for match, call in cases:
+        with pytest.raises(SelectionError, match=match) as info:
+            call()
+        assert not isinstance(info.value, EvaluationError), match
+    assert issubclass(SelectionError, MemlogError) and not issubclass(SelectionError, UsageError)
+
+
+# ---------------------------------------------------------------- the segment defaults
+
+
+def test_segment_defaults_have_one_source_and_combined_score_defaults_to_geometric() -> None:
+    """combined_score without ``combine`` is the weighted geometric mean (the documented default),
+    and every entry point's segment default is the one in SEGMENT_DEFAULTS."""
+    t = random_table(50, seed=31)
+    # behaviour first, against a hand-computed expectation: (MS*SS*ES)^(1/3)
+    from memlog.selection import combined_score
+
+    np.testing.assert_allclose(combined_score(t), (t.ms * t.ss * t.es) ** (1 / 3), rtol=1e-12)
+
+    from memlog.selection.config import SelectionConfig
+    from memlog.selection.segment import SEGMENT_DEFAULTS
+
+    # the documented choices (README "defaults" table, segment module docstring)
+    d = SEGMENT_DEFAULTS
+    assert (d.combine, d.keep_fraction, d.min_ss) == ("geometric", 0.25, 0.1)
+    keys = ("by", "keep_fraction", "combine", "weights", "min_ms", "min_ss", "min_es", "view_distance",
+            "distinct_weight")
+    want = {k: getattr(SEGMENT_DEFAULTS, k) for k in keys}
+    # SELECTORS["segment"] (what select() and so SelectionConfig.run start from)
+    assert {k: SELECTORS["segment"][k] for k in keys} == want
+    # SegmentConfig's field defaults (a size must be given; keep_fraction is that size here)
+    seg = SegmentConfig(keep_fraction=SEGMENT_DEFAULTS.keep_fraction)
+    assert {k: getattr(seg, k) for k in keys} == want
+    # SelectionConfig's segment settings (keep_fraction filled in when no size is given)
+    settings = SelectionConfig().segment_settings()
+    assert {k: settings[k] for k in keys} == want
+    # combined_score's own parameter defaults
+    import inspect
+
+    params = inspect.signature(combined_score).parameters
+    assert params["combine"].default == want["combine"] and params["weights"].default == want["weights"]
+    assert params["distinct_weight"].default == want["distinct_weight"]
+    # select_segments with no config: the default keep fraction of segments, picked by the default combine
+    sel = select_segments(t)
+    assert sel.info["n_bins"] == math.floor(0.25 * 50 + 0.5) and sel.info["combine"] == "geometric"
+    assert sel.keep.tolist() == select_segments(t, seg).keep.tolist()
+
+
+# ---------------------------------------------------------------- distance segments across a GNSS gap
+
+
+def gap_drive(speed: Any = 2.0, radius: float = 200.0) -> tuple[ScoreTable, NDArray[np.bool_], F64]:
+    """10 Hz frames for 300 s along a circle of ``radius`` metres at ``speed`` m/s (a number or a
+    function of time in seconds); positions unknown (NaN) from 120 s to 180 s, a tunnel. Returns the
+    table, the gap rows and the frame times in seconds."""
+    n = 3000
+    t_s = np.arange(n) / 10.0
+    v = speed(t_s) if callable(speed) else np.full(n, float(speed))
+    arc = np.concatenate([[0.0], np.cumsum(v[:-1] * 0.1)])
+    pos = np.c_[radius * np.sin(arc / radius), radius * (1 - np.cos(arc / radius))]
+    gap = (t_s >= 120.0) & (t_s < 180.0)
+    pos[gap] = np.nan
+    table = random_table(n, seed=5, positions=pos, t_ns=(np.arange(n) * 100_000_000).astype(np.int64))
+    return table, gap, t_s
+
+
+def whole_segments(seg: NDArray[np.int64], rows: NDArray[np.bool_]) -> list[int]:
+    """Segments lying wholly within ``rows``."""
+    return [int(s) for s in np.unique(seg[rows]) if rows[seg == s].all()]
+
+
+@pytest.mark.parametrize("size", [{"spacing_m": 10.0}, {"keep_fraction": 0.02}])
+def test_distance_segments_are_cut_by_time_across_a_gnss_gap(size: dict[str, float]) -> None:
+    from memlog.selection import segment_ids
+
+    table, gap, t_s = gap_drive()
+    seg, info = segment_ids(table, SegmentConfig(by="distance", **size))
+    assert np.all(np.diff(seg) >= 0) and np.all(np.diff(seg) <= 1) and seg[0] == 0  # consecutive ids
+    # 2 m/s everywhere: 10 m segments are 5 s long (keep_fraction 0.02 of 3000 frames: 60 segments
+    # of 600 m), also in the tunnel (before the fix: its 60 s were one segment, the last one of the
+    # known stretch before it)
+    rest = len(whole_segments(seg, ~gap)) / 240.0
+    in_gap = len(whole_segments(seg, gap)) / 60.0
+    assert rest == pytest.approx(0.2, rel=0.05)
+    assert in_gap == pytest.approx(rest, rel=0.1)
+    durations = [np.ptp(t_s[seg == s]) + 0.1 for s in whole_segments(seg, gap)]
+    assert np.allclose(durations, 5.0, atol=0.15)
+    # info says how many segments were cut by time in the gap
+    assert info["position_gaps"] == 1
+    assert info["time_segments"] == len(np.unique(seg[gap]))
+    assert 11 <= info["time_segments"] <= 13
+
+
+def test_gnss_gap_length_from_the_speed_around_it_or_the_straight_line() -> None:
+    from memlog.selection import segment_ids
+
+    cfg = SegmentConfig(by="distance", spacing_m=10.0)
+    # a tunnel that loops (circle of 180 m: the fixes either side of it are ~0 m apart), at 3 m/s
+    # around it while the drive's ends crawl at 0.5 m/s: the tunnel's 60 s are 180 m, 18 segments
+    loop = lambda t: np.where((t >= 60.0) & (t < 240.0), 3.0, 0.5)
+    table, gap, _ = gap_drive(loop, radius=180.0 / (2 * np.pi))
+    seg, info = segment_ids(table, cfg)
+    assert len(whole_segments(seg, gap)) in (17, 18) and info["time_segments"] in (18, 19)
+    # a straight tunnel driven faster (3 m/s) than around it (1 m/s): the straight line between the
+    # fixes (180 m) is longer than speed x time (60 m) and is the gap's length
+    fast = lambda t: np.where((t >= 120.0) & (t < 180.0), 3.0, 1.0)
+    table, gap, _ = gap_drive(fast, radius=1e9)
+    seg, info = segment_ids(table, cfg)
+    assert len(whole_segments(seg, gap)) in (17, 18) and info["time_segments"] in (18, 19)
+    assert info["gap_length_m"] == pytest.approx(180.0, abs=0.5)
+
+
+def test_a_missing_fix_at_the_fixes_rate_is_no_gap() -> None:
+    from memlog.selection import segment_ids
+
+    table, gap, _ = gap_drive()
+    pos = table.positions
+    assert pos is not None
+    pos = pos.copy()
+    pos[gap] = pos[np.flatnonzero(gap)[0] - 1]  # the tunnel filled in: the robot stood there
+    pos[[500, 2500, 2501]] = np.nan  # one missing fix, two missing fixes
+    t = ScoreTable(index=table.index, t_ns=table.t_ns, ms=table.ms, ss=table.ss, es=table.es, positions=pos)
+    seg, info = segment_ids(t, SegmentConfig(by="distance", spacing_m=10.0))
+    assert info["position_gaps"] == 0 and info["time_segments"] == 0
+    assert len(set(seg[np.flatnonzero(gap)[0] - 1 : np.flatnonzero(gap)[-1] + 1].tolist())) == 1  # standing: one

@@ -242,3 +242,38 @@ def test_auto_rule_on_resized_euroc(tmp_path: Path, scale: float, size: tuple[in
     with open_log(copy) as r:
         c = resolve_descriptor("auto", r, "/camera/image/compressed")
     assert c.frame_size == size and c.chosen == kind
+
+
+def test_blank_frames_stay_zero_after_whitening() -> None:
+    """The describers' rule: a frame with no information is the zero vector, which matches nothing in
+    particular (similarity 0 with every map frame). Whitening keeps it: a zero row stays a zero row,
+    as do rows with NaN (both are the rows the fit leaves out), instead of all becoming the one unit
+    vector normalize(-mean @ proj) that would match every blank map frame with similarity 1."""
+    from memlog.descriptors.search import match
+
+    x = _data()  # mean far from 0 (the data are offset), as real descriptors' is
+    w = fit_whitening(x, max_dim=8)
+    blank = np.zeros((3, 20), dtype=np.float32)
+    refs = w.apply(np.concatenate([x[:10], blank, x[10:20]]))  # a map with three blank frames
+    assert np.all(refs[10:13] == 0.0)
+    assert np.allclose(np.linalg.norm(np.delete(refs, [10, 11, 12], axis=0), axis=1), 1.0, atol=1e-5)
+    nan_row = np.full((1, 20), np.nan, dtype=np.float32)
+    part_nan = x[:1].copy()
+    part_nan[0, 3] = np.nan
+    with np.errstate(all="raise"):
+        q = w.apply(np.concatenate([blank[:1], nan_row, part_nan, x[20:21]]))
+    assert np.all(q[:3] == 0.0) and np.linalg.norm(q[3]) == pytest.approx(1.0, abs=1e-5)
+    _, sims = match(q[:1], refs, k=len(refs))
+    np.testing.assert_array_equal(sims, np.zeros((1, len(refs)), dtype=np.float32))
+    idx, sims = match(q[3:], refs, k=len(refs))
+    assert sims[0][np.isin(idx[0], [10, 11, 12])].tolist() == [0.0, 0.0, 0.0]  # a real query: blank refs 0
+    # the describer: a black frame gives the zero vector before and after whitening
+    base = make_describer("thumbnail", width=32, height=16)  # 512-d: a quick fit
+    wd = WhitenedDescriber(base, fit_whitening(_data(n=64, d=512, seed=3)))
+    rng = np.random.default_rng(0)
+    black = np.zeros((48, 64, 3), dtype=np.uint8)
+    textured = rng.integers(0, 256, size=(48, 64, 3), dtype=np.uint8)
+    assert np.all(base.describe([black]) == 0.0)
+    out = wd.describe([black, textured])
+    assert out.shape == (2, wd.dim) and np.all(out[0] == 0.0)
+    assert np.linalg.norm(out[1]) == pytest.approx(1.0, abs=1e-5)

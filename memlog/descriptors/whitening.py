@@ -8,7 +8,15 @@ A :class:`Whitening` maps a describer's L2-normalised descriptors ``x`` (``dim_i
 is built, on every described frame of the reference drive (:class:`WhiteningFitter`
 accumulates the mean and covariance in float64, so memory is ``dim_in^2`` whatever the drive's
 length), stored beside the map's descriptors (Parquet schema metadata, with its sha256) and
-applied unchanged to every query (:class:`WhitenedDescriber`). Descriptor metadata records the
+applied unchanged to every query (:class:`WhitenedDescriber`).
+
+Blank frames stay blank: a describer gives a frame with no information (a black or uniform image)
+the zero vector, which has similarity 0 with everything (:func:`~memlog.descriptors.base.l2_normalize`,
+and :mod:`~memlog.descriptors.search` ranks an all-zero query against nothing in particular).
+``(0 - mean) @ proj`` is not zero, so :meth:`Whitening.apply` maps the rows the fit leaves out
+(all zeros; any NaN or infinite value: :func:`blank_rows`) to zero rows instead; otherwise every
+blank frame would become the same unit vector and blank queries would match blank map frames
+with similarity 1. Descriptor metadata records the
 transform's sha256 (:attr:`DescriptorMeta.whitening`), so a query described without it, or with
 another one, is refused by :func:`~memlog.descriptors.base.check_compatible`.
 
@@ -43,6 +51,7 @@ __all__ = [
     "Whitening",
     "WhiteningFitter",
     "WhitenedDescriber",
+    "blank_rows",
     "fit_whitening",
     "whitening_dim",
     "DEFAULT_MAX_DIM",
@@ -62,6 +71,14 @@ DEFAULT_EPS = 1e-3
 #: At least this many descriptors are needed to fit a transform (a map of a shorter drive is
 #: left unwhitened, and says so).
 MIN_SAMPLES = 32
+
+
+def blank_rows(x: npt.NDArray[Any]) -> npt.NDArray[np.bool_]:
+    """Rows of ``x`` ``[N, d]`` that carry no descriptor: all zeros (a blank frame) or with a NaN or
+    infinite value. The fit leaves them out and :meth:`Whitening.apply` keeps them zero."""
+    a = np.asarray(x)
+    out: npt.NDArray[np.bool_] = ~(np.all(np.isfinite(a), axis=1) & np.any(a != 0, axis=1))
+    return out
 
 
 def whitening_dim(n_samples: int, dim_in: int, max_dim: int | None = None) -> int:
@@ -130,11 +147,14 @@ class Whitening:
         return h.hexdigest()
 
     def apply(self, x: npt.ArrayLike) -> F32:
-        """Whitened, L2-normalised descriptors ``[N, dim_out]`` of ``x`` ``[N, dim_in]``."""
+        """Whitened, L2-normalised descriptors ``[N, dim_out]`` of ``x`` ``[N, dim_in]``; a blank
+        row (:func:`blank_rows`: all zeros, or NaN/inf) gives a zero row, as before whitening."""
         a = np.asarray(x, dtype=np.float32)
         if a.ndim != 2 or a.shape[1] != self.dim_in:
             raise DescriptorError(f"whitening expects [N, {self.dim_in}] descriptors, got shape {a.shape}")
-        return l2_normalize((a - self.mean) @ self.proj)
+        blank = blank_rows(a)
+        y = (np.where(blank[:, None], self.mean, a) - self.mean) @ self.proj  # blank rows: exactly 0
+        return l2_normalize(y)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (arrays as base64 little-endian float32), with the sha256."""
@@ -183,7 +203,7 @@ class WhiteningFitter:
         a = np.asarray(x, dtype=np.float64)
         if a.ndim != 2 or a.shape[1] != self.dim_in:
             raise DescriptorError(f"whitening fit expects [N, {self.dim_in}] descriptors, got shape {a.shape}")
-        a = a[np.all(np.isfinite(a), axis=1) & np.any(a != 0, axis=1)]
+        a = a[~blank_rows(a)]
         self.n += a.shape[0]
         self._sum += a.sum(axis=0)
         self._outer += a.T @ a

@@ -23,7 +23,7 @@ from memlog.selection.redundancy import (
     drop_duplicates,
     find_duplicates,
 )
-from memlog.selection.segment import SegmentConfig, combined_score, segment_ids, select_segments
+from memlog.selection.segment import SEGMENT_DEFAULTS, SegmentConfig, combined_score, segment_ids, select_segments
 from memlog.selection.selectors import SELECTORS, select
 from memlog.selection.table import Gap, ScoreTable, Selection
 
@@ -40,6 +40,7 @@ __all__ = [
     "calibrate",
     "select_calibrated",
     "SegmentConfig",
+    "SEGMENT_DEFAULTS",
     "select_segments",
     "segment_ids",
     "combined_score",

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from memlog.errors import EvaluationError
+from memlog.errors import SelectionError
 from memlog.selection._checks import fraction, positive_int
 from memlog.selection.paper import PaperConfig, select_paper
 from memlog.selection.table import ScoreTable, Selection
@@ -85,7 +85,7 @@ def calibrate(
 ) -> Calibration:
     """Find the common quantile q whose thresholds keep about ``keep_fraction`` of the frames.
 
-    Raises EvaluationError when the table is empty or a criterion has no finite score
+    Raises SelectionError when the table is empty or a criterion has no finite score
     (no threshold can be derived); an unreachable F gives the nearest achievable rate
     with a ``note``.
     """
@@ -93,12 +93,12 @@ def calibrate(
     iters = positive_int("max_iter", max_iter)
     n = table.n
     if n == 0:
-        raise EvaluationError("cannot calibrate thresholds on an empty score table")
+        raise SelectionError("cannot calibrate thresholds on an empty score table")
     cols = (table.ms, table.ss, table.es)
     sorted_cols = [_finite_sorted(c) for c in cols]
     for name, v in zip(("memorability", "staticity", "entropy"), sorted_cols):
         if v.size == 0:
-            raise EvaluationError(f"cannot calibrate thresholds: no frame has a finite {name} score")
+            raise SelectionError(f"cannot calibrate thresholds: no frame has a finite {name} score")
 
     def thresholds(q: float) -> tuple[float, float, float]:
         mt, st, et = (float(np.quantile(v, q)) for v in sorted_cols)

@@ -13,7 +13,8 @@ from typing import Any, Literal
 from memlog.errors import ConfigError
 from memlog.selection._checks import finite_number, fraction, positive_number
 from memlog.selection.redundancy import RedundancyConfig
-from memlog.selection.selectors import SELECTORS, select
+from memlog.selection.segment import SEGMENT_DEFAULTS
+from memlog.selection.selectors import select
 from memlog.selection.table import ScoreTable, Selection
 
 __all__ = ["SelectionConfig"]
@@ -35,8 +36,8 @@ class SelectionConfig:
     config's). ``spacing_m``/``spacing_s``: segment mode, one frame per metres / seconds.
     ``segment_by``: how segments are cut. ``dedup``: drop a kept frame within this cosine
     distance of an already kept one (descriptor: the thumbnail). ``min_ss``/``min_ms``/``min_es``,
-    ``weights``, ``combine``, ``view_distance``: segment mode's tuning (defaults chosen on the
-    shared Nordland slice, see :mod:`memlog.selection.segment`).
+    ``weights``, ``combine``, ``view_distance``: segment mode's tuning (defaults:
+    :data:`~memlog.selection.segment.SEGMENT_DEFAULTS`, chosen on the shared Nordland slice).
 
     Distinctiveness (:mod:`memlog.selection.distinctiveness`), a fourth criterion computed from
     the reference drive's (whitened) descriptors: ``dt`` is its threshold in paper mode (keep
@@ -52,16 +53,16 @@ class SelectionConfig:
     et: float = 0.4
     spacing_m: float | None = None
     spacing_s: float | None = None
-    segment_by: Literal["auto", "distance", "time", "count", "view"] = "auto"
+    segment_by: Literal["auto", "distance", "time", "count", "view"] = SEGMENT_DEFAULTS.by
     dedup: float | None = None
-    min_ms: float = float(SELECTORS["segment"]["min_ms"])
-    min_ss: float = float(SELECTORS["segment"]["min_ss"])
-    min_es: float = float(SELECTORS["segment"]["min_es"])
-    weights: tuple[float, float, float] = tuple(SELECTORS["segment"]["weights"])
-    combine: Literal["geometric", "rank"] = SELECTORS["segment"]["combine"]
-    view_distance: float = float(SELECTORS["segment"]["view_distance"])
+    min_ms: float = SEGMENT_DEFAULTS.min_ms
+    min_ss: float = SEGMENT_DEFAULTS.min_ss
+    min_es: float = SEGMENT_DEFAULTS.min_es
+    weights: tuple[float, float, float] = SEGMENT_DEFAULTS.weights
+    combine: Literal["geometric", "rank"] = SEGMENT_DEFAULTS.combine
+    view_distance: float = SEGMENT_DEFAULTS.view_distance
     dt: float | None = None
-    distinct_weight: float = 0.0
+    distinct_weight: float = SEGMENT_DEFAULTS.distinct_weight
     distinct_window: int = 2
     distinct_exclusion: int = 10
 
@@ -151,7 +152,7 @@ class SelectionConfig:
         elif self.spacing_s is not None:
             kw["spacing_s"] = self.spacing_s
         elif self.segment_by != "view":
-            kw["keep_fraction"] = float(SELECTORS["segment"]["keep_fraction"])
+            kw["keep_fraction"] = SEGMENT_DEFAULTS.keep_fraction
         SegmentConfig(**kw)
         return kw
 

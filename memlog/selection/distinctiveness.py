@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from memlog.errors import ConfigError, EvaluationError
+from memlog.errors import ConfigError, SelectionError
 from memlog.selection._checks import positive_int
 from memlog.selection.segment import percentile_ranks
 
@@ -63,7 +63,7 @@ def margins(descriptors: ArrayLike, config: DistinctConfig | None = None) -> tup
     cfg = config or DistinctConfig()
     d = np.asarray(descriptors, dtype=np.float32)
     if d.ndim != 2:
-        raise EvaluationError(f"descriptors must be [N, d], got shape {d.shape}")
+        raise SelectionError(f"descriptors must be [N, d], got shape {d.shape}")
     n = d.shape[0]
     ok = np.all(np.isfinite(d), axis=1)
     dz = np.where(ok[:, None], d, 0.0).astype(np.float32)

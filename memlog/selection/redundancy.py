@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from memlog.errors import ConfigError, EvaluationError
+from memlog.errors import ConfigError, SelectionError
 from memlog.selection._checks import finite_number, positive_int, positive_number
 from memlog.selection.table import ScoreTable, Selection
 
@@ -94,7 +94,7 @@ def find_duplicates(
     mask = np.asarray(keep)
     n = table.n
     if mask.dtype != bool or mask.shape != (n,):
-        raise EvaluationError(f"keep must be a bool mask of shape ({n},), got {mask.dtype} {mask.shape}")
+        raise SelectionError(f"keep must be a bool mask of shape ({n},), got {mask.dtype} {mask.shape}")
     use_d = cfg.dup_distance is not None
     use_p = cfg.dup_radius_m is not None
     if use_d and table.descriptors is None:
@@ -211,7 +211,7 @@ def drop_duplicates(
     "duplicate"; ``duplicates`` maps their frame index to the kept frame index)."""
     cfg = config if config is not None else RedundancyConfig()
     if selection.n_frames != table.n or not np.array_equal(selection.index, table.index):
-        raise EvaluationError("selection and score table cover different frames")
+        raise SelectionError("selection and score table cover different frames")
     res = find_duplicates(table, selection.keep, cfg)
     reasons = list(selection.reason)
     duplicates = dict(selection.duplicates)

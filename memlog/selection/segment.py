@@ -2,8 +2,8 @@
 
 The drive is cut into consecutive place segments, by one of
 
-* ``"distance"``: cumulative path length of the known positions (unknown rows carry the
-  last known length), a new segment every ``spacing_m`` metres;
+* ``"distance"``: travelled distance along the known positions, a new segment every
+  ``spacing_m`` metres; across a gap in the positions the segments are cut by time (below);
 * ``"time"``: log time, a new segment every ``spacing_s`` seconds;
 * ``"count"``: frame count, ``spacing_frames`` frames per segment;
 * ``"view"``: a new segment starts when the cosine distance between a frame's descriptor
@@ -14,6 +14,24 @@ With ``keep_fraction=F`` instead of a spacing, the number of segments is
 frames) is split into S equal parts; ``by="auto"`` then uses distance when positions
 exist and the robot moved, else time when the timestamps span > 0, else frame count.
 Bins that hold no frame (the robot jumped, a time gap) are not segments.
+
+Position gaps (``"distance"``). The coordinate is the path length through the known positions
+(rows with a NaN or infinite coordinate are unknown); a row between two consecutive fixes is placed between
+them in proportion to its time. A pair of consecutive fixes is a *gap* when they are more than
+``GAP_FACTOR = 3`` typical fix intervals apart in time (the median interval between consecutive
+fixes over the drive: one or two missed fixes are not a gap, a tunnel is), whether or not frames lie
+between them; so are the rows before the first fix and after the last one when they last that long.
+A gap's length is the larger of the straight line between its fixes and ``v * duration``, where
+``v`` is the median speed (weighted by time) of the fix-to-fix steps within
+``GAP_SPEED_WINDOW_S = 60`` s before and after it (the whole drive's median speed when there are
+none; 0 without any step); its frames are spread over that length in proportion to time. So a gap
+is cut by time, one segment every ``spacing / v`` seconds (``spacing`` being ``spacing_m``, or the
+segment length ``path_length_m / S`` with ``keep_fraction``): it gets as many segments per second as
+the drive around it, not one for minutes of driving. ``info`` then says ``position_gaps`` (how
+many), ``gap_s`` and ``gap_length_m`` (their duration and estimated length, which
+``path_length_m`` includes) and ``time_segments`` (segments holding a row inside a gap). A time jump
+between two consecutive frames that both have a fix holds no frame to cut; only its length (and so
+the later rows' coordinate) is the gap rule's.
 
 Each segment keeps its best frame by a combined score among the frames that pass the
 minimum thresholds ``min_ms``/``min_ss``/``min_es`` (NaN fails); a segment none of whose
@@ -32,8 +50,9 @@ ties, in (0, 1)), invariant to any increasing transform; a criterion that is con
 drive (SS == 1.0 everywhere) ranks 0.5 everywhere and drops out. Ties go to the earliest frame
 of the segment.
 
-Defaults (chosen on the shared Nordland slice, summer -> winter, thumbnail descriptor; the grid
-is ``benchmarks/selection_table.py --tune``): geometric beat rank at 25 % of the frames (R@1
+Defaults (:data:`SEGMENT_DEFAULTS`, the one source every entry point reads; chosen on the shared
+Nordland slice, summer -> winter, thumbnail descriptor; the grid is
+``benchmarks/selection_table.py --tune``): geometric beat rank at 25 % of the frames (R@1
 0.104 vs 0.092 map-only) and matched it at 50/75 %; equal weights were as good as any other
 weighting tried; minimum scores only for staticity (``min_ss=0.1``: a view almost fully covered
 by vehicles or people is no place), because dropping dark frames (``min_es=0.05``) left tunnel
@@ -54,7 +73,8 @@ from memlog.selection._checks import finite_number, fraction, positive_int, posi
 from memlog.selection.paper import codes_to_reasons, first_failing
 from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
 
-__all__ = ["SegmentConfig", "select_segments", "segment_ids", "combined_score", "geometric_score", "percentile_ranks"]
+__all__ = ["SegmentConfig", "SegmentDefaults", "SEGMENT_DEFAULTS", "select_segments", "segment_ids",
+           "combined_score", "geometric_score", "percentile_ranks"]
 
 SegmentBy = Literal["auto", "distance", "time", "count", "view"]
 Combine = Literal["rank", "geometric"]
@@ -63,15 +83,17 @@ _COMBINE = ("rank", "geometric")
 
 
 @dataclass(frozen=True)
-class SegmentConfig:
-    """Settings of :func:`select_segments` (set exactly one of ``keep_fraction``,
-    ``spacing_m``, ``spacing_s``, ``spacing_frames``; none for ``by="view"``)."""
+class SegmentDefaults:
+    """The segment selector's defaults (chosen on the shared Nordland slice: module docstring).
+
+    The one source: :class:`SegmentConfig`, :func:`combined_score`, :func:`select_segments` without
+    a config, ``SELECTORS["segment"]`` (:mod:`memlog.selection.selectors`) and
+    :class:`~memlog.selection.config.SelectionConfig` all read :data:`SEGMENT_DEFAULTS`.
+    ``keep_fraction`` is the size used when no spacing is given.
+    """
 
     by: SegmentBy = "auto"
-    keep_fraction: float | None = None
-    spacing_m: float | None = None
-    spacing_s: float | None = None
-    spacing_frames: int | None = None
+    keep_fraction: float = 0.25
     view_distance: float = 0.3
     min_ms: float = 0.0
     min_ss: float = 0.1
@@ -79,6 +101,33 @@ class SegmentConfig:
     weights: tuple[float, float, float] = (1.0, 1.0, 1.0)  # (ms, ss, es)
     combine: Combine = "geometric"
     distinct_weight: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """The defaults as a plain dict (``weights`` a tuple), in field order."""
+        return asdict(self)
+
+
+#: The segment defaults every entry point reads (see :class:`SegmentDefaults`).
+SEGMENT_DEFAULTS = SegmentDefaults()
+
+
+@dataclass(frozen=True)
+class SegmentConfig:
+    """Settings of :func:`select_segments` (set exactly one of ``keep_fraction``,
+    ``spacing_m``, ``spacing_s``, ``spacing_frames``; none for ``by="view"``)."""
+
+    by: SegmentBy = SEGMENT_DEFAULTS.by
+    keep_fraction: float | None = None
+    spacing_m: float | None = None
+    spacing_s: float | None = None
+    spacing_frames: int | None = None
+    view_distance: float = SEGMENT_DEFAULTS.view_distance
+    min_ms: float = SEGMENT_DEFAULTS.min_ms
+    min_ss: float = SEGMENT_DEFAULTS.min_ss
+    min_es: float = SEGMENT_DEFAULTS.min_es
+    weights: tuple[float, float, float] = SEGMENT_DEFAULTS.weights  # (ms, ss, es)
+    combine: Combine = SEGMENT_DEFAULTS.combine
+    distinct_weight: float = SEGMENT_DEFAULTS.distinct_weight
 
     def __post_init__(self) -> None:
         if self.by not in _BY:
@@ -150,13 +199,13 @@ def percentile_ranks(x: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def combined_score(
     table: ScoreTable,
-    weights: tuple[float, float, float] = (1.0, 1.0, 1.0),
-    combine: Combine = "rank",
-    distinct_weight: float = 0.0,
+    weights: tuple[float, float, float] = SEGMENT_DEFAULTS.weights,
+    combine: Combine = SEGMENT_DEFAULTS.combine,
+    distinct_weight: float = SEGMENT_DEFAULTS.distinct_weight,
 ) -> NDArray[np.float64]:
     """Per-frame combined score of (MS, SS, ES) with weights (ms, ss, es), and of the
-    distinctiveness DS with ``distinct_weight``; NaN if any used score is NaN. See the module
-    docstring for the choice."""
+    distinctiveness DS with ``distinct_weight``; NaN if any used score is NaN. Defaults: those of
+    :data:`SEGMENT_DEFAULTS` (the geometric mean); see the module docstring for the choice."""
     if distinct_weight > 0 and table.ds is None:
         raise ConfigError("distinct_weight needs the table's distinctiveness (ds) column")
     if combine == "geometric":
@@ -187,19 +236,88 @@ def geometric_score(ms: ArrayLike, ss: ArrayLike, es: ArrayLike,
         return np.asarray(np.exp((wu * logs).sum(axis=0)), dtype=np.float64)
 
 
-def _path_length(table: ScoreTable) -> NDArray[np.float64]:
-    """Cumulative travelled distance per row; unknown positions carry the last value."""
+#: A pair of consecutive known positions further apart in time than this many typical fix intervals
+#: (the median over the drive) is a position gap; see the module docstring.
+GAP_FACTOR = 3.0
+#: Seconds of known positions on each side of a gap whose median speed gives the gap's length.
+GAP_SPEED_WINDOW_S = 60.0
+
+
+def _weighted_median(x: NDArray[np.float64], w: NDArray[np.float64]) -> float:
+    """The lower weighted median of ``x`` (weights ``w`` > 0, at least one value)."""
+    order = np.argsort(x, kind="stable")
+    cw = np.cumsum(w[order])
+    return float(x[order][int(np.searchsorted(cw, 0.5 * cw[-1]))])
+
+
+def _distance_coordinate(table: ScoreTable) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]]:
+    """Position of each row along the drive (metres from 0, non-decreasing; see the module
+    docstring), the rows inside position gaps, and facts about the gaps for ``info``."""
     assert table.positions is not None
-    known = table.known_positions()
-    s = np.zeros(table.n)
-    rows = np.flatnonzero(known)
-    if rows.size >= 2:
-        steps = np.linalg.norm(np.diff(table.positions[rows], axis=0), axis=1)
-        s_known = np.concatenate([[0.0], np.cumsum(steps)])
-        # carry forward: row r gets the length at the last known row <= r (0 before any)
-        pos = np.searchsorted(rows, np.arange(table.n), side="right") - 1
-        s = np.where(pos >= 0, s_known[np.clip(pos, 0, None)], 0.0)
-    return s
+    n = table.n
+    t = (table.t_ns - table.t_ns[0]).astype(np.float64) / 1e9
+    rows = np.flatnonzero(table.known_positions())
+    s = np.zeros(n)
+    in_gap = np.zeros(n, dtype=bool)
+    if rows.size < 2:  # no travelled distance can be measured
+        return s, in_gap, {"position_gaps": 0}
+    a, b = rows[:-1], rows[1:]
+    dur = t[b] - t[a]
+    length = np.linalg.norm(np.diff(table.positions[rows], axis=0), axis=1)
+    limit = GAP_FACTOR * float(np.median(dur))  # 0: most fixes share a time, no rate to go by
+    gap = dur > limit if limit > 0 else np.zeros(dur.size, dtype=bool)
+    step = ~gap & (dur > 0)  # measured speeds: pairs at the fixes' rate
+    st_a, st_b = t[a[step]], t[b[step]]
+    speed, weight = length[step] / dur[step], dur[step]
+
+    def speed_around(before: float | None, after: float | None) -> float:
+        """Median speed (by time) of the steps within the window before ``before`` and after
+        ``after``; the whole drive's when there are none there; 0 without any step."""
+        parts = []
+        if before is not None:
+            parts.append(np.arange(int(np.searchsorted(st_a, before - GAP_SPEED_WINDOW_S, "left")),
+                                   int(np.searchsorted(st_b, before, "right"))))
+        if after is not None:
+            parts.append(np.arange(int(np.searchsorted(st_a, after, "left")),
+                                   int(np.searchsorted(st_b, after + GAP_SPEED_WINDOW_S, "right"))))
+        sel = np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+        if sel.size:
+            return _weighted_median(speed[sel], weight[sel])
+        if "drive" not in drive_speed:
+            drive_speed["drive"] = _weighted_median(speed, weight) if speed.size else 0.0
+        return drive_speed["drive"]
+
+    drive_speed: dict[str, float] = {}
+
+    estimated = 0.0
+    pair_len = length.copy()
+    for g in np.flatnonzero(gap).tolist():
+        pair_len[g] = max(float(length[g]), speed_around(float(t[a[g]]), float(t[b[g]])) * float(dur[g]))
+        estimated += float(pair_len[g])
+        in_gap[a[g] + 1 : b[g]] = True
+    lead_s, trail_s = float(t[rows[0]]), float(t[-1] - t[rows[-1]])
+    lead_gap, trail_gap = limit > 0 and lead_s > limit, limit > 0 and trail_s > limit
+    v_lead = speed_around(None, float(t[rows[0]])) if lead_gap else 0.0
+    v_trail = speed_around(float(t[rows[-1]]), None) if trail_gap else 0.0
+    s_known = v_lead * lead_s + np.concatenate([[0.0], np.cumsum(pair_len)])
+    # rows from the first to the last fix: along their pair in proportion to time
+    mid = np.arange(rows[0], rows[-1] + 1)
+    k = np.minimum(np.searchsorted(rows, mid, side="right") - 1, a.size - 1)
+    frac = np.divide(t[mid] - t[a[k]], dur[k], out=np.zeros(mid.size), where=dur[k] > 0)
+    s[mid] = s_known[k] + pair_len[k] * np.clip(frac, 0.0, 1.0)
+    s[rows] = s_known
+    # before the first fix and after the last one: by time at the speed next to them when they are
+    # gaps, else they carry the nearest fix's place
+    s[: rows[0]] = v_lead * t[: rows[0]]
+    s[rows[-1] + 1 :] = s_known[-1] + v_trail * (t[rows[-1] + 1 :] - t[rows[-1]])
+    in_gap[: rows[0]] = lead_gap
+    in_gap[rows[-1] + 1 :] = trail_gap
+    n_gaps = int(np.count_nonzero(gap)) + int(lead_gap) + int(trail_gap)
+    facts: dict[str, Any] = {"position_gaps": n_gaps}
+    if n_gaps:
+        facts["gap_s"] = float(dur[gap].sum()) + lead_s * lead_gap + trail_s * trail_gap
+        facts["gap_length_m"] = estimated + v_lead * lead_s + v_trail * trail_s
+    return s, in_gap, facts
 
 
 def _bin_along(value: NDArray[np.float64], spacing: float | None, n_bins: int | None) -> tuple[NDArray[np.int64], float]:
@@ -270,7 +388,7 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
         elif config.spacing_frames is not None:
             by = "count"
         else:
-            moved = table.positions is not None and float(_path_length(table)[-1]) > 0.0
+            moved = table.positions is not None and float(_distance_coordinate(table)[0][-1]) > 0.0
             by = "distance" if moved else ("time" if table.t_ns[-1] > table.t_ns[0] else "count")
     if by == "distance" and table.positions is None:
         raise ConfigError("segment by='distance' needs positions, but the score table has none")
@@ -298,8 +416,9 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
             info["note"] = "timestamps span 0 s: one segment"
         info["spacing_s"] = width / 1e9
     elif by == "distance":
-        s = _path_length(table)
+        s, in_gap, facts = _distance_coordinate(table)
         info["path_length_m"] = float(s[-1])
+        info.update(facts)
         raw, width = _bin_along(s, config.spacing_m, n_seg)
         if width == 0.0:
             info["note"] = "the robot did not move (path length 0 m): one segment"
@@ -312,6 +431,8 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
     seg = np.cumsum(change).astype(np.int64)
     info["by"] = by
     info["n_segments"] = int(seg[-1]) + 1
+    if by == "distance":
+        info["time_segments"] = int(np.unique(seg[in_gap]).size)
     if n_seg is not None:
         info["n_bins"] = n_seg
     return seg, info
@@ -319,8 +440,9 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
 
 def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> Selection:
     """Keep the best frame (by :func:`combined_score`) of each place segment among those
-    passing the minimum thresholds; segments with no passing frame become gaps."""
-    cfg = config if config is not None else SegmentConfig(keep_fraction=0.25)
+    passing the minimum thresholds; segments with no passing frame become gaps. Without a
+    config: :data:`SEGMENT_DEFAULTS` (``keep_fraction`` 0.25)."""
+    cfg = config if config is not None else SegmentConfig(keep_fraction=SEGMENT_DEFAULTS.keep_fraction)
     n = table.n
     seg, info = segment_ids(table, cfg)
     code = first_failing(table, cfg.min_ms, cfg.min_ss, cfg.min_es)

@@ -10,7 +10,7 @@ from memlog.errors import ConfigError
 from memlog.selection.calibrate import CalibrateConfig, select_calibrated
 from memlog.selection.paper import PaperConfig, select_paper
 from memlog.selection.redundancy import RedundancyConfig, drop_duplicates
-from memlog.selection.segment import SegmentConfig, select_segments
+from memlog.selection.segment import SEGMENT_DEFAULTS, SegmentConfig, select_segments
 from memlog.selection.table import ScoreTable, Selection
 
 __all__ = ["SELECTORS", "select"]
@@ -19,18 +19,8 @@ __all__ = ["SELECTORS", "select"]
 SELECTORS: dict[str, dict[str, Any]] = {
     "paper": {"mt": 0.5, "st": 0.6, "et": 0.4},
     "calibrated": {"keep_fraction": 0.1},
-    # chosen on the shared Nordland slice (benchmarks/selection_table.py --tune; README)
-    "segment": {
-        "by": "auto",
-        "keep_fraction": 0.25,
-        "view_distance": 0.3,
-        "min_ms": 0.0,
-        "min_ss": 0.1,
-        "min_es": 0.0,
-        "weights": (1.0, 1.0, 1.0),
-        "combine": "geometric",
-        "distinct_weight": 0.0,
-    },
+    # memlog.selection.segment.SEGMENT_DEFAULTS: the one source (chosen on the shared Nordland slice)
+    "segment": SEGMENT_DEFAULTS.to_dict(),
 }
 
 _RUNNERS: dict[str, tuple[type[Any], Callable[[ScoreTable, Any], Selection]]] = {

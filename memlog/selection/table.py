@@ -5,7 +5,7 @@ frame index, log time, the three scores MS/SS/ES (NaN where a score was not comp
 and optionally positions and global descriptors. A :class:`Selection` is a keep mask over
 the rows of a table, with the reason each dropped frame was dropped.
 
-Invalid tables raise :class:`~memlog.errors.EvaluationError` (they are inputs, not
+Invalid tables raise :class:`~memlog.errors.SelectionError` (they are inputs, not
 settings); invalid settings raise :class:`~memlog.errors.ConfigError` elsewhere.
 """
 
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from memlog.errors import EvaluationError
+from memlog.errors import SelectionError
 
 __all__ = ["ScoreTable", "Selection", "Gap", "CRITERIA", "REASONS", "DISTINCT"]
 
@@ -39,18 +39,18 @@ _UNIT_NORM_TOL = 1e-3
 def _int_column(name: str, value: ArrayLike) -> NDArray[np.int64]:
     a = np.asarray(value)
     if a.ndim != 1:
-        raise EvaluationError(f"ScoreTable.{name} must be 1-D, got shape {a.shape}")
+        raise SelectionError(f"ScoreTable.{name} must be 1-D, got shape {a.shape}")
     if a.size and a.dtype.kind not in "iu":
-        raise EvaluationError(f"ScoreTable.{name} must hold integers, got dtype {a.dtype}")
+        raise SelectionError(f"ScoreTable.{name} must hold integers, got dtype {a.dtype}")
     return a.astype(np.int64, copy=True)
 
 
 def _float_column(name: str, value: ArrayLike) -> NDArray[np.float64]:
     a = np.asarray(value)
     if a.ndim != 1:
-        raise EvaluationError(f"ScoreTable.{name} must be 1-D, got shape {a.shape}")
+        raise SelectionError(f"ScoreTable.{name} must be 1-D, got shape {a.shape}")
     if a.size and a.dtype.kind not in "biuf":
-        raise EvaluationError(f"ScoreTable.{name} must hold numbers, got dtype {a.dtype}")
+        raise SelectionError(f"ScoreTable.{name} must hold numbers, got dtype {a.dtype}")
     return a.astype(np.float64, copy=True)
 
 
@@ -82,7 +82,7 @@ class ScoreTable:
         if self.ds is not None:
             self.ds = _float_column("ds", self.ds)
             if len(self.ds) != len(self.index):
-                raise EvaluationError(f"ScoreTable columns differ in length: index has {len(self.index)} rows, "
+                raise SelectionError(f"ScoreTable columns differ in length: index has {len(self.index)} rows, "
                                       f"ds has {len(self.ds)}")
         self.t_ns = _int_column("t_ns", self.t_ns)
         self.ms = _float_column("ms", self.ms)
@@ -92,33 +92,33 @@ class ScoreTable:
         for name in ("t_ns", "ms", "ss", "es"):
             got = len(getattr(self, name))
             if got != n:
-                raise EvaluationError(
+                raise SelectionError(
                     f"ScoreTable columns differ in length: index has {n} rows, {name} has {got}"
                 )
         if n > 1:
             if np.any(np.diff(self.index) <= 0):
                 bad = int(np.flatnonzero(np.diff(self.index) <= 0)[0])
-                raise EvaluationError(
+                raise SelectionError(
                     "ScoreTable.index must be strictly increasing; row "
                     f"{bad + 1} has index {self.index[bad + 1]} after {self.index[bad]}"
                 )
             if np.any(np.diff(self.t_ns) < 0):
                 bad = int(np.flatnonzero(np.diff(self.t_ns) < 0)[0])
-                raise EvaluationError(
+                raise SelectionError(
                     "ScoreTable.t_ns must be non-decreasing (log-time order); frame "
                     f"{self.index[bad + 1]} has t_ns {self.t_ns[bad + 1]} < {self.t_ns[bad]}"
                 )
         if self.positions is not None:
             p = np.asarray(self.positions, dtype=np.float64)
             if p.ndim != 2 or p.shape[0] != n or p.shape[1] not in (2, 3):
-                raise EvaluationError(
+                raise SelectionError(
                     f"ScoreTable.positions must have shape [{n}, 2] or [{n}, 3], got {p.shape}"
                 )
             self.positions = p.copy()
         if self.descriptors is not None:
             d = np.asarray(self.descriptors)
             if d.ndim != 2 or d.shape[0] != n or d.shape[1] < 1:
-                raise EvaluationError(
+                raise SelectionError(
                     f"ScoreTable.descriptors must have shape [{n}, d] with d >= 1, got {d.shape}"
                 )
             d = d.astype(np.float32, copy=True)
@@ -127,7 +127,7 @@ class ScoreTable:
             off = np.abs(norms - 1.0) > _UNIT_NORM_TOL
             if np.any(off):
                 row = int(np.flatnonzero(ok)[np.flatnonzero(off)[0]])
-                raise EvaluationError(
+                raise SelectionError(
                     "ScoreTable.descriptors must be L2-normalised; frame "
                     f"{self.index[row]} has norm {norms[np.flatnonzero(off)[0]]:.6g}"
                 )
@@ -158,7 +158,7 @@ class ScoreTable:
         r = np.asarray(rows)
         if r.dtype == bool:
             if r.shape != (self.n,):
-                raise EvaluationError(f"row mask must have shape ({self.n},), got {r.shape}")
+                raise SelectionError(f"row mask must have shape ({self.n},), got {r.shape}")
             r = np.flatnonzero(r)
         return ScoreTable(
             index=self.index[r],
@@ -249,18 +249,18 @@ class Selection:
         self.keep = np.asarray(self.keep, dtype=bool)
         n = len(self.index)
         if self.keep.shape != (n,) or len(self.reason) != n:
-            raise EvaluationError(
+            raise SelectionError(
                 f"Selection: index ({n}), keep {self.keep.shape} and reason "
                 f"({len(self.reason)}) must have the same length"
             )
         for i, (k, r) in enumerate(zip(self.keep.tolist(), self.reason)):
             if k != (r is None):
-                raise EvaluationError(
+                raise SelectionError(
                     f"Selection: frame {self.index[i]} is {'kept' if k else 'dropped'} "
                     f"but has reason {r!r} (reason must be None exactly for kept frames)"
                 )
             if r is not None and r not in REASONS:
-                raise EvaluationError(f"Selection: unknown reason {r!r} for frame {self.index[i]}")
+                raise SelectionError(f"Selection: unknown reason {r!r} for frame {self.index[i]}")
 
     @property
     def n_frames(self) -> int:
