@@ -197,3 +197,68 @@ def test_local_workers_write_what_one_process_writes_and_resume(tmp_path: Path,
     assert [r.status for r in batch(logs[:1], out, faster).logs] == ["skipped"]
     assert [r.status for r in batch(logs[:1], out, BatchConfig(map=MapConfig(jpeg_quality=80), resume=False,
                                                                workers=1)).logs] == ["ok"]
+
+
+def test_resume_refuses_outputs_of_another_memlog_version_or_other_models(tmp_path: Path,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """An upgrade of memlog or a rebuilt model (another sha256) makes every output stale."""
+    import memlog.steps.batch as batch_mod
+
+    use_stand_in(monkeypatch)
+    logs = [FIXTURES / "ros2_mcap"]
+    out = tmp_path / "out"
+    cfg = BatchConfig(workers=1)
+    assert [r.status for r in batch(logs, out, cfg).logs] == ["ok"]
+    assert [r.status for r in batch(logs, out, cfg).logs] == ["skipped"]
+    real = batch_mod.model_versions
+    monkeypatch.setattr(batch_mod, "model_versions",
+                        lambda names: {**real(names), "resmem": "0" * 64})  # the model was rebuilt
+    assert [r.status for r in batch(logs, out, cfg).logs] == ["ok"]
+    assert [r.status for r in batch(logs, out, cfg).logs] == ["skipped"]
+    monkeypatch.setattr(batch_mod, "__version__", "99.0.0")  # memlog was upgraded
+    assert [r.status for r in batch(logs, out, cfg).logs] == ["ok"]
+
+
+def test_resume_skips_a_map_without_descriptors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    use_stand_in(monkeypatch)
+    logs = [FIXTURES / "ros2_mcap"]
+    out = tmp_path / "out"
+    cfg = BatchConfig(map=MapConfig(descriptor=None), workers=1)
+    first = batch(logs, out, cfg)
+    assert [r.status for r in first.logs] == ["ok"] and "descriptors" not in first.logs[0].outputs
+    assert not (out / "ros2_mcap.map.parquet").exists()
+    assert [r.status for r in batch(logs, out, cfg).logs] == ["skipped"]
+
+
+def _killer(*args: object) -> object:
+    """A scoring job that kills its worker process the first time it runs (out of memory, say)."""
+    marker = Path(os.environ["MEMLOG_TEST_MARKER"])
+    if marker.exists():
+        marker.unlink()
+        os._exit(1)
+    from tests import test_batch
+
+    return test_batch._REAL_SCORE_CHUNK(*args)
+
+
+def test_a_broken_pool_is_replaced_for_the_logs_after_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With several logs at once, a worker killed while one log runs fails that log (and the
+    logs sharing the pool at that moment); every log started later runs on a new pool."""
+    import memlog.steps.score as score_mod
+    from tests import test_batch
+
+    use_stand_in(monkeypatch)
+    marker = tmp_path / "kill-once"
+    marker.write_text("")
+    monkeypatch.setenv("MEMLOG_TEST_MARKER", str(marker))
+    monkeypatch.setattr(test_batch, "_REAL_SCORE_CHUNK", score_mod.score_chunk, raising=False)
+    monkeypatch.setattr(score_mod, "score_chunk", _killer)
+    logs = []
+    for k in range(4):
+        logs.append(tmp_path / f"log{k}.mcap")
+        logs[-1].write_bytes((FIXTURES / "ros1.mcap").read_bytes())
+    res = batch(logs, tmp_path / "out", BatchConfig(workers=2, logs_at_once=2, chunk_frames=1))
+    status = [r.status for r in res.logs]
+    assert not marker.exists() and "failed" in status
+    assert status[-1] == "ok" and status.count("ok") >= 2, status  # the logs after the break ran
+    assert sum(r.worker_failures for r in res.logs) >= 1

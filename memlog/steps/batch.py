@@ -110,7 +110,7 @@ class BatchConfig:
     def models(self) -> list[str]:
         """The models whose files the outputs depend on."""
         names = ["resmem", "ssd-mobilenet-v2-coco"]
-        if self.map.score.fast:
+        if self.map.score.mode == "fast":
             names.append("resmem-int8")
         if self.map.descriptor is not None and ("dinov2" in self.map.descriptor or self.map.descriptor == "auto"):
             names.append("dinov2-vits14")
