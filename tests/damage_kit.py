@@ -688,3 +688,197 @@ def run_case(case: Case, work: Path, limit: int = 120) -> Outcome:
         if case.checksummed:
             out.problems.append("damaged input called clean (exit 0) although messages differ")
     return out
+
+
+# ------------------------------------------------------------------ the whole pipeline on damage
+
+
+def pipeline_cases(fixtures: Path) -> list[Case]:
+    """Damaged copies of the fixture logs with several chunks, for :func:`run_pipeline_case`: a
+    chunk failing its CRC in an indexed log, unfinished recordings (cut, cut + zeros), a damaged
+    index, a cut ROS 1 bag and a cut ROS 2 sqlite bag."""
+    demo = fixtures / "demo.mcap"
+    data = demo.read_bytes()
+    pieces = mcap_pieces(demo)
+    chunks = [p for p in pieces if data[p.start] == 0x06]
+    _, _, srecs = _mcap_layout(data)
+    ci = [o for o, op, _ in srecs if op == 0x08]
+    cases: list[Case] = []
+
+    def add(name: str, build: Callable[[Path], Path], source: str = "demo.mcap") -> None:
+        cases.append(Case(source, "pipeline", f"{source}:{name}", build, lambda _p: None))
+
+    for k in (1, len(chunks) // 2):
+        at = chunks[k].end - 30  # inside the compressed records of chunk k
+        add(f"chunk-{k}-crc", _patch(demo, lambda b, at=at: _flip(b, at)))
+    add("cut@70%", _patch(demo, lambda b: b[: int(len(b) * 0.7)]))
+    add("cut@85%+zeros", _patch(demo, lambda b: b[: int(len(b) * 0.85)] + bytes(4096)))
+    add("cut@85%+chunk-1-crc", _patch(demo, lambda b, at=chunks[1].end - 30: _flip(b, at)[: int(len(b) * 0.85)]))
+    if ci:
+        add("chunk-index-offset+7", _patch(demo, lambda b, o=ci[0] + 9: _fix_summary_crc(_add_u64(b, o + 16, 7))))
+    bag = fixtures / "ros1.bag"
+    add("cut@70%", _patch(bag, lambda b: b[: int(len(b) * 0.7)]), "ros1.bag")
+
+    def ros2_cut(d: Path) -> Path:
+        out = _copy(fixtures / "ros2_sqlite", d)
+        db = next(out.glob("*.db3"))
+        db.write_bytes(db.read_bytes()[: int(db.stat().st_size * 0.9)])
+        return out
+
+    add("cut@90%", ros2_cut, "ros2_sqlite")
+    return cases
+
+
+def _decodable_frames(path: Path) -> tuple[dict[tuple[str, int], Any], bool]:
+    """Every frame of ``path`` that reads and decodes: (topic, index) -> Frame (pixels kept), and
+    whether reading them found damage."""
+    from memlog.errors import ImageDecodeError
+    from memlog.io import open_log
+
+    out = {}
+    with open_log(path) as log:
+        log.quiet_warnings()
+        for f in log.frames():
+            try:
+                f.decode_bgr()
+            except ImageDecodeError:
+                log.report.undecodable_frames += 1
+                continue
+            out[(f.topic, f.index)] = f
+        return out, not log.report.ok
+
+
+def _normalised(path: Path) -> Any:
+    from tests.same_outputs import normalised_map
+
+    msgs, scores, meta = normalised_map(path)
+    meta = {k: {kk: vv for kk, vv in v.items() if kk not in ("seconds",)} if isinstance(v, dict) else v
+            for k, v in meta.items()}
+    return msgs, scores, meta.get("memlog_map", {}).get("selection")
+
+
+def _check_map(out: "Outcome", case: Case, mp: Path, frames: dict[tuple[str, int], Any], label: str) -> None:
+    """The map holds only frames of the input, each with its own bytes and its own scores, and
+    it was selected from every readable frame."""
+    import numpy as np
+
+    from memlog.io import open_log
+    from memlog.outputs.annotated import read_scores
+    from memlog.scoring.config import ScoreConfig
+    from memlog.scoring.scorer import Scorer
+
+    by_time = {(t, f.log_time_ns): f for (t, _), f in frames.items()}
+    with open_log(mp) as m:
+        meta = dict(m.metadata()).get("memlog_map", {})
+        images: dict[int, list[Any]] = {}
+        for g in m.frames():  # a raw input frame is written JPEG-encoded on TOPIC/compressed
+            images.setdefault(g.log_time_ns, []).append(g)
+    if int(meta.get("frames_in", -1)) != len(frames):
+        out.problems.append(f"{label}: selected from {meta.get('frames_in')} frames, {len(frames)} are readable")
+    scorer = Scorer(ScoreConfig(all_scores=True))
+    for topic, recs in read_scores(mp).items():
+        for r in recs:
+            f = frames.get((topic, r["frame_index"]))
+            if f is None or f.log_time_ns != r["log_time"]:
+                out.problems.append(f"{label}: {topic} frame {r['frame_index']} of the map is not that frame of the "
+                                    "input (another frame's scores)")
+                continue
+            if by_time.get((topic, r["log_time"])) is not f:
+                out.problems.append(f"{label}: two input frames share {topic} log time {r['log_time']}")
+            want = f.decode_bgr()
+            c = scorer.cheap(want, keep_maps=False)
+            if abs(float(c.ss) - float(r["ss"])) > 1e-6 or abs(float(c.es) - float(r["es"])) > 1e-6:
+                out.problems.append(f"{label}: {topic} frame {r['frame_index']} carries scores that are not its own")
+            same = False
+            for g in images.get(r["log_time"], []):
+                if g.topic not in (topic, f"{topic}/compressed"):
+                    continue
+                if g.payload.data == f.payload.data:
+                    same = True
+                    continue
+                img = g.decode_bgr().astype(np.int16)  # re-encoded: nearer this frame than any other
+                dist = {k: float(np.abs(img - o.decode_bgr().astype(np.int16)).mean()) for k, o in frames.items()
+                        if k[0] == topic and o.decode_bgr().shape == img.shape}
+                if dist and min(dist, key=lambda k: dist[k]) == (topic, r["frame_index"]):
+                    same = True
+            if not same:
+                out.problems.append(f"{label}: {topic} frame {r['frame_index']}: the map does not hold its pixels")
+
+
+def run_pipeline_case(case: Case, work: Path, limit: int = 600) -> Outcome:
+    """``memlog map`` (default, and ``--workers 2``), ``memlog batch`` and ``memlog evaluate`` on a
+    damaged log: exit 3 (or 1 when nothing can be made), no traceback, hang or partial output; the
+    map selected from every readable frame, holds each kept frame's own bytes and scores, and is
+    the same on two workers and in batch."""
+    import json
+
+    out = Outcome(case.name, case.kind, case.source)
+    inp, res = work / "in", work / "out"
+    for d in (inp, res):
+        shutil.rmtree(d, ignore_errors=True)
+        d.mkdir(parents=True)
+    path = case.build(inp)
+    before = _tree_hash(path)
+    frames, damaged = _decodable_frames(path)
+    t0 = time.perf_counter()
+    n_q = 0
+    from memlog.io import open_log
+
+    with open_log(path) as log:
+        log.quiet_warnings()
+        cams = log.camera_topics()
+        if cams:
+            from memlog.io.base import FrameWindow
+
+            n_q = log.count_frames(FrameWindow((cams[0],)))
+    truth = res / "truth.json"
+    truth.write_text(json.dumps({"matches": [[q] for q in range(n_q)]}))
+    runs = {
+        "map": ["map", str(path), "-o", str(res / "m1.mcap")],
+        "map --workers 2": ["map", str(path), "-o", str(res / "m2.mcap"), "--workers", "2"],
+        "batch": ["batch", str(path), "-o", str(res / "batch"), "--workers", "2"],
+        "evaluate": ["evaluate", "--reference", str(path), "--query", str(path), "--truth", str(truth),
+                     "-o", str(res / "eval")],
+    }
+    try:
+        with time_limit(limit):
+            for label, args in runs.items():
+                code, err = _cli(args)
+                out.codes[label] = code
+                if "internal error" in err or "Traceback" in err:
+                    out.problems.append(f"{label}: {err.strip().splitlines()[-1][:200]}")
+                if code not in (1, 3) if damaged else code != 0:
+                    out.problems.append(f"{label}: exit {code}{' (damage not reported)' if damaged else ''}: "
+                                        f"{err.strip().splitlines()[-1][:160] if err.strip() else ''}")
+    except Timeout:
+        out.problems.append(f"hang: over {limit} s")
+    out.seconds = time.perf_counter() - t0
+    out.got = len(frames)
+    maps = {"map": res / "m1.mcap", "map --workers 2": res / "m2.mcap",
+            "batch": res / "batch" / f"{path.name.removesuffix('.mcap').removesuffix('.bag')}.map.mcap"}
+    for label, mp in maps.items():
+        code = out.codes.get(label)
+        if code in (0, 3) and not mp.exists():
+            out.problems.append(f"{label}: exit {code} but no map")
+        elif code not in (0, 3) and mp.exists():
+            out.problems.append(f"{label}: failed but left a map")
+        elif mp.exists():
+            _check_map(out, case, mp, frames, label)
+    if maps["map"].exists():
+        first = _normalised(maps["map"])
+        for label in ("map --workers 2", "batch"):
+            if maps[label].exists() and _normalised(maps[label]) != first:
+                out.problems.append(f"{label}: another map than one process wrote")
+    ev = out.codes.get("evaluate")
+    if ev in (0, 3) and not (res / "eval" / "results.json").exists():
+        out.problems.append("evaluate: exit 0/3 but no results.json")
+    left = [p.name for d in (res, res / "batch", res / "eval") if d.exists() for p in d.iterdir()
+            if p.name.endswith(".tmp")]
+    if left:
+        out.problems.append(f"temporary files left: {left}")
+    if _tree_hash(path) != before:
+        out.problems.append("input modified")
+    from memlog.io import clear_cache
+
+    clear_cache()
+    return out

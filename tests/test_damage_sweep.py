@@ -14,7 +14,9 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import FIXTURES
-from tests.damage_kit import Case, image_cases, mcap_cases, ros1_cases, ros2_cases, run_case
+from tests.damage_kit import (Case, image_cases, mcap_cases, pipeline_cases, ros1_cases, ros2_cases, run_case,
+                              run_pipeline_case)
+from tests.stand_in import use_stand_in
 
 _PICK = {
     # MCAP: the issue's index holes and a few cuts/flips
@@ -67,3 +69,17 @@ def test_damaged_input(case: Case, tmp_path: Path) -> None:
         assert set(out.codes.values()) <= {1, 3}, out.codes
     else:
         assert out.codes["read"] == 3
+
+
+PIPELINE = pipeline_cases(FIXTURES)
+
+
+@pytest.mark.parametrize("case", PIPELINE, ids=[c.name for c in PIPELINE])
+def test_the_pipeline_on_damaged_input(case: Case, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """map (one process and two workers), batch and evaluate on damaged logs: exit 3, complete maps
+    of what was readable, each kept frame with its own bytes and scores, same output everywhere
+    (ResMem is the stand-in: damage handling does not depend on the model)."""
+    use_stand_in(monkeypatch)
+    out = run_pipeline_case(case, tmp_path)
+    assert not out.problems, out.problems
+    assert out.codes["map"] == 3, out.codes

@@ -325,7 +325,7 @@ def score(
             topics = reader.check_camera_topics(window.topics)
             sc = None
             if isinstance(ex, InProcess):  # with workers, the models load in the worker processes
-                sc = (scorer or Scorer(config)).load()
+                sc = scorer or _scorer_for(config)  # loaded once per process (evaluate scores again)
             prov: dict[str, Any] = {}
             errors: list[FrameError] = []
             summaries = {t: TopicSummary() for t in topics}
