@@ -144,3 +144,51 @@ def test_the_package_has_no_test_hooks() -> None:
     found = [f"{name}: {needle}" for name, path in sorted(MODULES.items())
              for needle in ("MEMLOG_TEST", "os._exit(") if needle in path.read_text(encoding="utf-8")]
     assert not found, f"test hooks in the package: {found}"
+
+
+def test_library_code_does_not_print() -> None:
+    """Library code logs through the ``memlog`` logger; only the command line writes to stdout or
+    stderr itself (it decides what is shown)."""
+    offenders = []
+    for name, path in MODULES.items():
+        if name.startswith("memlog.cli") or name == "memlog.__main__":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "print":
+                offenders.append(f"{name}:{node.lineno}")
+            if isinstance(node, ast.Attribute) and node.attr in ("stderr", "stdout") and \
+                    isinstance(node.value, ast.Name) and node.value.id == "sys" and name != "memlog.progress":
+                offenders.append(f"{name}:{node.lineno} sys.{node.attr}")
+    assert not offenders, offenders
+
+
+def test_threads_have_their_own_progress_settings() -> None:
+    """Two steps running side by side in threads (``batch --logs-at-once``): one redirecting its
+    progress or going quiet does not change what the other does."""
+    import threading
+
+    from memlog.progress import is_quiet, progress, redirect, set_quiet
+
+    seen: dict[str, list[str]] = {"a": [], "b": []}
+    ready, done = threading.Event(), threading.Event()
+
+    def a() -> None:
+        with redirect(lambda desc, unit: seen["a"].append(desc)):
+            set_quiet(True)
+            ready.set()
+            done.wait(5)
+            list(progress(range(2), desc="a"))
+
+    def b() -> None:
+        ready.wait(5)
+        seen["b"].append(f"quiet={is_quiet()}")
+        with redirect(lambda desc, unit: seen["b"].append(desc)):
+            list(progress(range(3), desc="b"))
+        done.set()
+
+    ts = [threading.Thread(target=a), threading.Thread(target=b)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    assert seen == {"a": ["a", "a"], "b": ["quiet=False", "b", "b", "b"]}

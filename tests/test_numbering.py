@@ -141,3 +141,60 @@ def test_an_unfinished_log_is_scanned_once_and_warned_once(name: str, tmp_path: 
     texts = [r.getMessage() for r in caplog.records]
     assert texts and len(texts) == len(set(texts)), texts
     assert all(r.damage() == reports[0].damage() != [] for r in reports)  # every reader still reports it
+
+
+def test_map_reads_an_unfinished_log_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                          caplog: pytest.LogCaptureFixture) -> None:
+    """`memlog map` (cheap pass, segment jobs, final write: many readers of one log) on a cut
+    recording: its data is scanned once, and each of its warnings is said once."""
+    from memlog.steps.map import make_map
+    from tests.stand_in import use_stand_in
+
+    use_stand_in(monkeypatch)
+    path = _damaged("mcap-cut", tmp_path)
+    opened = []
+    import memlog.io.mcap.reader as reader_mod
+
+    real_open = open
+
+    def counting_open(file, *a, **kw):  # type: ignore[no-untyped-def]
+        if str(file) == str(path):
+            opened.append(file)
+        return real_open(file, *a, **kw)
+
+    monkeypatch.setattr(reader_mod, "open", counting_open, raising=False)
+    caplog.set_level(logging.WARNING, logger="memlog")
+    res = make_map(path, tmp_path / "map.mcap")
+    assert res.report is not None and res.report.truncated
+    assert scans(str(path)) == 1
+    texts = [r.getMessage() for r in caplog.records if str(path) in r.getMessage()]
+    assert texts and len(texts) == len(set(texts)), texts
+    assert len(opened) >= 3  # several readers opened it: each started from the one scan
+
+
+def test_a_zstd_compressed_ros2_bag_is_decompressed_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import zstandard
+
+    import memlog.io.rosbag2.reader as r2
+
+    bag = tmp_path / "zbag"
+    shutil.copytree(FIXTURES / "ros2_sqlite", bag)
+    db = next(bag.glob("*.db3"))
+    (bag / (db.name + ".zstd")).write_bytes(zstandard.ZstdCompressor().compress(db.read_bytes()))
+    db.unlink()
+    meta = bag / "metadata.yaml"
+    meta.write_text(meta.read_text().replace(f"- {db.name}", f"- {db.name}.zstd")
+                    .replace("compression_format: ''", "compression_format: zstd")
+                    .replace("compression_mode: ''", "compression_mode: FILE"))
+    calls = []
+    real = r2.Ros2BagLog._unzstd
+
+    def counting(self, f):  # type: ignore[no-untyped-def]
+        calls.append(f)
+        return real(self, f)
+
+    monkeypatch.setattr(r2.Ros2BagLog, "_unzstd", counting)
+    want = _frames(FIXTURES / "ros2_sqlite")
+    for _ in range(4):
+        assert _frames(bag) == want
+    assert len(calls) == 1
