@@ -387,6 +387,8 @@ def test_segment_by_view_change_three_places() -> None:
     assert sel.segment_id.tolist() == which.tolist()
     check_one_per_bin(sel, t, which, SegmentConfig(by="view", view_distance=0.5))
     with pytest.raises(ConfigError, match="descriptors"):
+        select(random_table(10), "segment", by="view", view_distance=0.5)
+    with pytest.raises(ConfigError, match="view vectors"):
         select(random_table(10), "segment", by="view")
 
 

@@ -163,7 +163,7 @@ def test_staged_map_equals_full_scoring_on_shared_logs(name: str, stride: int, t
     configs = [SelectionConfig(keep_fraction=0.25), SelectionConfig(keep_fraction=0.5, dedup=0.02),
                SelectionConfig(spacing_s=0.6 if "euroc" in name else 2.0)]
     for i, sel in enumerate(configs):
-        full = make_map(log, tmp_path / f"full{i}.mcap", MapConfig(score=ScoreConfig(all_scores=True), select=sel,
+        full = make_map(log, tmp_path / f"full{i}.mcap", MapConfig(score=ScoreConfig(all_scores=True), select=sel, candidates="all",
                                                                    descriptor=None, stride=stride))
         staged = make_map(log, tmp_path / f"staged{i}.mcap", MapConfig(select=sel, descriptor=None, stride=stride,
                                                                        candidates="all"))

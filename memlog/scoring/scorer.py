@@ -37,7 +37,7 @@ from memlog.errors import ScoringError
 from memlog.models.resmem import FRAME
 from memlog.scoring.config import ScoreConfig
 
-__all__ = ["Scorer", "FrameScore", "SharedScore", "CheapStage", "resize_frame", "STAGES", "pixels_digest"]
+__all__ = ["Scorer", "FrameScore", "SharedScore", "CheapStage", "resize_frame", "STAGES", "pixels_digest", "view_vector"]
 
 STAGES = ("staticity", "entropy", "memorability")
 T = TypeVar("T")
@@ -124,8 +124,11 @@ class SharedScore:
         return replace(previous, shared_from=self.index if index is None else index, timing_ms=dict(self.timing_ms))
 
 
-def _thumb(img: npt.NDArray[Any]) -> npt.NDArray[np.float64]:
-    """A 32 x 16 grey thumbnail as a zero-mean unit vector (near-duplicate test)."""
+def view_vector(img: npt.NDArray[Any]) -> npt.NDArray[np.float64]:
+    """A 32 x 16 grey thumbnail as a zero-mean unit vector (zero for a flat frame): what the
+    near-duplicate test and the view-change measure of selection compare. A standing camera's
+    consecutive frames differ by a cosine distance of at most 0.0002 (EuRoC before take-off, all
+    188 pairs), a moving train's by a median 0.15 (Nordland)."""
     g = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     v = cv2.resize(g, (32, 16), interpolation=cv2.INTER_AREA).astype(np.float64).ravel()
     v -= v.mean()
@@ -366,7 +369,7 @@ class Scorer:
         """What decides that two frames are the same: their pixel digest; with
         ``duplicates="near"`` (fast mode only) also their thumbnail descriptor."""
         if self.config.duplicates == "near":
-            return (pixels_digest(img), _thumb(img))
+            return (pixels_digest(img), view_vector(img))
         return pixels_digest(img)
 
     def same_frame(self, a: Any, b: Any) -> bool:

@@ -61,6 +61,7 @@ class SelectionConfig:
     weights: tuple[float, float, float] = SEGMENT_DEFAULTS.weights
     combine: Literal["geometric", "rank"] = SEGMENT_DEFAULTS.combine
     view_distance: float = SEGMENT_DEFAULTS.view_distance
+    still_distance: float = SEGMENT_DEFAULTS.still_distance
     dt: float | None = None
     distinct_weight: float = SEGMENT_DEFAULTS.distinct_weight
     distinct_window: int = 2
@@ -109,8 +110,14 @@ class SelectionConfig:
     # -- what the run needs ----------------------------------------------------------------
     @property
     def needs_descriptors(self) -> bool:
-        """Whether selecting needs a descriptor per frame (near-duplicates, view segments)."""
-        return self.dedup is not None or (self.mode == "segment" and self.segment_by == "view")
+        """Whether selecting needs a descriptor per frame (near-duplicates)."""
+        return self.dedup is not None
+
+    @property
+    def needs_view(self) -> bool:
+        """Whether selecting needs every frame's view vector (segments by view change, and the
+        stops that every segment coordinate leaves out)."""
+        return self.mode == "segment"
 
     @property
     def needs_distinctiveness(self) -> bool:
@@ -143,6 +150,7 @@ class SelectionConfig:
         kw: dict[str, Any] = {
             "by": self.segment_by, "min_ms": self.min_ms, "min_ss": self.min_ss, "min_es": self.min_es,
             "weights": tuple(self.weights), "combine": self.combine, "view_distance": self.view_distance,
+            "still_distance": self.still_distance,
             "distinct_weight": self.distinct_weight,
         }
         if self.keep_fraction is not None:
@@ -151,19 +159,21 @@ class SelectionConfig:
             kw["spacing_m"] = self.spacing_m
         elif self.spacing_s is not None:
             kw["spacing_s"] = self.spacing_s
-        elif self.segment_by != "view":
+        else:
             kw["keep_fraction"] = SEGMENT_DEFAULTS.keep_fraction
         SegmentConfig(**kw)
         return kw
 
-    def run(self, table: ScoreTable) -> Selection:
-        """Select frames of ``table`` by this config."""
+    def run(self, table: ScoreTable, *, shortlist: int | None = None, ms_bound: str = "ss") -> Selection:
+        """Select frames of ``table`` by this config; segment mode with ``shortlist=K``: the
+        best of K candidates per segment (``memlog map --candidates K``, see
+        :class:`~memlog.selection.segment.SegmentConfig`)."""
         dedup = None if self.dedup is None else RedundancyConfig(dup_distance=self.dedup)
         if self.mode == "paper":
             if self.keep_fraction is not None:
                 return select(table, "calibrated", keep_fraction=self.keep_fraction, dedup=dedup)
             return select(table, "paper", dedup=dedup, **self.thresholds)
-        return select(table, "segment", dedup=dedup, **self.segment_settings())
+        return select(table, "segment", dedup=dedup, shortlist=shortlist, ms_bound=ms_bound, **self.segment_settings())
 
     def label(self) -> str:
         """What a selection's thresholds are, for messages."""

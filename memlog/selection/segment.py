@@ -6,14 +6,26 @@ The drive is cut into consecutive place segments, by one of
   ``spacing_m`` metres; across a gap in the positions the segments are cut by time (below);
 * ``"time"``: log time, a new segment every ``spacing_s`` seconds;
 * ``"count"``: frame count, ``spacing_frames`` frames per segment;
-* ``"view"``: a new segment starts when the cosine distance between a frame's descriptor
-  and the descriptor of the segment's first frame exceeds ``view_distance``.
+* ``"view"``: how much the view changed along the drive: the table's view vectors
+  (``ScoreTable.view``, a 32 x 16 zero-mean thumbnail of every frame) give each step from one
+  frame to the next its chord length ``sqrt(2 * cosine distance)`` (about proportional to how far
+  the camera moved for small steps), and the drive's total view change is split into equal parts
+  like a path length; without a size (``keep_fraction``) and with ``view_distance``, a new
+  segment starts instead when the distance to the segment's first frame's descriptor exceeds
+  ``view_distance``.
 
 With ``keep_fraction=F`` instead of a spacing, the number of segments is
-``S = max(1, floor(F*N + 0.5))`` and the drive's total length (metres, seconds or
-frames) is split into S equal parts; ``by="auto"`` then uses distance when positions
-exist and the robot moved, else time when the timestamps span > 0, else frame count.
-Bins that hold no frame (the robot jumped, a time gap) are not segments.
+``S = max(1, floor(F*N + 0.5))`` and the drive's total length (metres, view change, seconds or
+frames) is split into S equal parts; ``by="auto"`` then uses distance when positions exist and
+the robot moved, else the view change when the table has view vectors, else time when the
+timestamps span > 0, else frame count. Bins that hold no frame (the robot jumped, a time gap)
+are not segments.
+
+Stops. A step whose view change is below ``still_distance`` (a standing camera: sensor noise
+only) adds nothing to the coordinate, whichever it is (distance, view change or time): the
+frames of a stop lie at one place of the drive and fall in one segment, so a stop never gets
+more than one map frame (``info["still_frames"]`` counts the frames that stood still). GNSS
+jitter of a standing robot, or the seconds it stood, do not make segments.
 
 Position gaps (``"distance"``). The coordinate is the path length through the known positions
 (rows with a NaN or infinite coordinate are unknown); a row between two consecutive fixes is placed between
@@ -63,6 +75,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import asdict, dataclass
+from collections.abc import Sequence
 from typing import Any, Literal
 
 import numpy as np
@@ -74,6 +87,7 @@ from memlog.selection.paper import codes_to_reasons, first_failing
 from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
 
 __all__ = ["SegmentConfig", "SegmentDefaults", "SEGMENT_DEFAULTS", "select_segments", "segment_ids",
+           "shortlist_rows", "upper_bounds", "MS_DIGITS",
            "combined_score", "geometric_score", "percentile_ranks"]
 
 SegmentBy = Literal["auto", "distance", "time", "count", "view"]
@@ -95,6 +109,7 @@ class SegmentDefaults:
     by: SegmentBy = "auto"
     keep_fraction: float = 0.25
     view_distance: float = 0.3
+    still_distance: float = 0.001
     min_ms: float = 0.0
     min_ss: float = 0.1
     min_es: float = 0.0
@@ -114,7 +129,14 @@ SEGMENT_DEFAULTS = SegmentDefaults()
 @dataclass(frozen=True)
 class SegmentConfig:
     """Settings of :func:`select_segments` (set exactly one of ``keep_fraction``,
-    ``spacing_m``, ``spacing_s``, ``spacing_frames``; none for ``by="view"``)."""
+    ``spacing_m``, ``spacing_s``, ``spacing_frames``; ``by="view"``: ``keep_fraction``, or
+    none and ``view_distance``).
+
+    ``shortlist=K`` (``memlog map --candidates K``): a segment keeps the best of only K
+    candidates, the best of each of K equal parts of it by the score's upper bound before MS is
+    known (MS at most SS, or 1 with ``ms_bound="one"``: MS normalised by the static area), so the
+    choice is the one the staged selection makes while running ResMem on those K frames only
+    (:mod:`memlog.selection.staged`); None: every frame is a candidate."""
 
     by: SegmentBy = SEGMENT_DEFAULTS.by
     keep_fraction: float | None = None
@@ -122,14 +144,21 @@ class SegmentConfig:
     spacing_s: float | None = None
     spacing_frames: int | None = None
     view_distance: float = SEGMENT_DEFAULTS.view_distance
+    still_distance: float = SEGMENT_DEFAULTS.still_distance
     min_ms: float = SEGMENT_DEFAULTS.min_ms
     min_ss: float = SEGMENT_DEFAULTS.min_ss
     min_es: float = SEGMENT_DEFAULTS.min_es
     weights: tuple[float, float, float] = SEGMENT_DEFAULTS.weights  # (ms, ss, es)
     combine: Combine = SEGMENT_DEFAULTS.combine
     distinct_weight: float = SEGMENT_DEFAULTS.distinct_weight
+    shortlist: int | None = None
+    ms_bound: Literal["ss", "one"] = "ss"
 
     def __post_init__(self) -> None:
+        if self.shortlist is not None:
+            positive_int("shortlist", self.shortlist)
+        if self.ms_bound not in ("ss", "one"):
+            raise ConfigError(f"ms_bound must be 'ss' or 'one', got {self.ms_bound!r}")
         if self.by not in _BY:
             raise ConfigError(f"segment by must be one of {_BY}, got {self.by!r}")
         if self.combine not in _COMBINE:
@@ -139,11 +168,13 @@ class SegmentConfig:
             for k in ("keep_fraction", "spacing_m", "spacing_s", "spacing_frames")
             if getattr(self, k) is not None
         }
-        if self.by == "view":
-            if sizes:
-                raise ConfigError(
-                    f"segment by='view' is sized by view_distance; unset {sorted(sizes)}"
-                )
+        v = finite_number("still_distance", self.still_distance)
+        if not 0.0 <= v < 2.0:
+            raise ConfigError(f"still_distance must be in [0, 2), got {self.still_distance!r}")
+        if self.by == "view" and set(sizes) - {"keep_fraction"}:
+            raise ConfigError(f"segment by='view' is sized by keep_fraction (or view_distance); unset "
+                              f"{sorted(set(sizes) - {'keep_fraction'})}")
+        if self.by == "view" and not sizes:
             v = finite_number("view_distance", self.view_distance)
             if not 0.0 < v <= 2.0:
                 raise ConfigError(f"view_distance must be in (0, 2], got {self.view_distance!r}")
@@ -333,6 +364,14 @@ def _bin_along(value: NDArray[np.float64], spacing: float | None, n_bins: int | 
     return np.zeros(len(value), dtype=np.int64), 0.0
 
 
+def _without_stops(coord: NDArray[np.float64], still: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """``coord`` with the steps into still rows removed (a stop lies at one place)."""
+    if not still.any():
+        return coord
+    step = np.diff(coord, prepend=coord[:1])
+    return np.asarray(np.cumsum(np.where(still, 0.0, step)), dtype=np.float64)
+
+
 def _view_segments(table: ScoreTable, view_distance: float) -> NDArray[np.int64]:
     """Segment ids by view change: new segment when 1 - <d_i, d_anchor> > view_distance."""
     assert table.descriptors is not None
@@ -389,11 +428,21 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
             by = "count"
         else:
             moved = table.positions is not None and float(_distance_coordinate(table)[0][-1]) > 0.0
-            by = "distance" if moved else ("time" if table.t_ns[-1] > table.t_ns[0] else "count")
+            by = "distance" if moved else "view" if table.view is not None else (
+                "time" if table.t_ns[-1] > table.t_ns[0] else "count")
     if by == "distance" and table.positions is None:
         raise ConfigError("segment by='distance' needs positions, but the score table has none")
-    if by == "view" and table.descriptors is None:
-        raise ConfigError("segment by='view' needs descriptors, but the score table has none")
+    anchored = by == "view" and config.keep_fraction is None
+    if anchored and table.descriptors is None:
+        raise ConfigError("segment by='view' with view_distance needs descriptors, but the score table has none")
+    if by == "view" and not anchored and table.view is None:
+        raise ConfigError("segment by='view' needs the frames' view vectors, but the score table has none")
+    steps = table.view_steps()
+    still = np.zeros(n, dtype=bool) if steps is None or config.still_distance <= 0 else (
+        np.nan_to_num(steps, nan=np.inf) < config.still_distance)
+    still[0] = False
+    if steps is not None:
+        info["still_frames"] = int(still.sum())
     n_seg = (
         max(1, int(np.floor(config.keep_fraction * n + 0.5)))
         if config.keep_fraction is not None
@@ -409,7 +458,7 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
             raw = (np.arange(n, dtype=np.int64) * n_seg) // n
             info["spacing_frames"] = n / n_seg
     elif by == "time":
-        dt = (table.t_ns - table.t_ns[0]).astype(np.float64)
+        dt = _without_stops((table.t_ns - table.t_ns[0]).astype(np.float64), still)
         spacing = None if config.spacing_s is None else config.spacing_s * 1e9
         raw, width = _bin_along(dt, spacing, n_seg)
         if width == 0.0:
@@ -417,15 +466,24 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
         info["spacing_s"] = width / 1e9
     elif by == "distance":
         s, in_gap, facts = _distance_coordinate(table)
+        s = _without_stops(s, still)
         info["path_length_m"] = float(s[-1])
         info.update(facts)
         raw, width = _bin_along(s, config.spacing_m, n_seg)
         if width == 0.0:
             info["note"] = "the robot did not move (path length 0 m): one segment"
         info["spacing_m"] = width
-    else:  # view
+    elif anchored:
         raw = _view_segments(table, config.view_distance)
         info["view_distance"] = config.view_distance
+    else:  # view change
+        assert steps is not None
+        chord = np.sqrt(2.0 * np.nan_to_num(steps, nan=0.0))
+        c = np.cumsum(np.where(still, 0.0, chord))
+        raw, width = _bin_along(c, None, n_seg)
+        info["view_change"] = float(c[-1])
+        if width == 0.0:
+            info["note"] = "the view never changed: one segment"
     # relabel to consecutive ids (bins without frames are not segments)
     change = np.concatenate([[0], (np.diff(raw) != 0).astype(np.int64)])
     seg = np.cumsum(change).astype(np.int64)
@@ -438,6 +496,50 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
     return seg, info
 
 
+#: MS as score records store it (decimals): the staged choice compares it so, and so does the shortlist.
+MS_DIGITS = 6
+
+
+def shortlist_rows(rows: Sequence[int], upper: Sequence[float], k: int) -> list[int]:
+    """The best ``k`` rows by ``upper``, spread over the segment: the rows are cut into ``k``
+    consecutive parts and the best row of each part is taken (ties: earlier row)."""
+    rows = list(rows)
+    if k >= len(rows):
+        return rows
+    parts = np.array_split(np.arange(len(rows)), k)
+    out = []
+    for p in parts:
+        best = min(p.tolist(), key=lambda i: (-upper[i], rows[i]))
+        out.append(rows[best])
+    return sorted(out)
+
+
+def upper_bounds(ss: ArrayLike, es: ArrayLike, weights: tuple[float, float, float],
+                 ms_bound: str = "ss") -> NDArray[np.float64]:
+    """The largest geometric score each frame can reach before its MS is known (MS <= SS, or 1)."""
+    ssa = np.asarray(ss, dtype=np.float64)
+    hi = np.ones_like(ssa) if ms_bound == "one" else np.minimum(1.0, ssa + 1e-9)
+    return geometric_score(np.round(hi, MS_DIGITS), ssa, es, weights)
+
+
+def _shortlisted(table: ScoreTable, seg: NDArray[np.int64], cfg: SegmentConfig) -> NDArray[np.bool_]:
+    """The rows that are candidates of their segment under ``cfg.shortlist`` (all when None, or when
+    MS does not count at all)."""
+    n = table.n
+    if cfg.shortlist is None or (cfg.weights[0] <= 0 and cfg.min_ms <= 0):
+        return np.ones(n, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        cheap_ok = (table.ss >= cfg.min_ss) & (table.es >= cfg.min_es)
+    upper = upper_bounds(table.ss, table.es, cfg.weights, cfg.ms_bound)
+    out = np.zeros(n, dtype=bool)
+    starts = np.flatnonzero(np.concatenate([[True], seg[1:] != seg[:-1]])) if n else np.zeros(0, np.int64)
+    ends = np.concatenate([starts[1:], [n]])
+    for a, e in zip(starts.tolist(), ends.tolist()):
+        rows = [r for r in range(a, e) if cheap_ok[r]]
+        out[shortlist_rows(rows, [float(upper[r]) for r in rows], cfg.shortlist)] = True
+    return out
+
+
 def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> Selection:
     """Keep the best frame (by :func:`combined_score`) of each place segment among those
     passing the minimum thresholds; segments with no passing frame become gaps. Without a
@@ -448,6 +550,10 @@ def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> S
     code = first_failing(table, cfg.min_ms, cfg.min_ss, cfg.min_es)
     passing = code == 0
     score = combined_score(table, cfg.weights, cfg.combine, cfg.distinct_weight)
+    if cfg.shortlist is not None:
+        short = _shortlisted(table, seg, cfg)
+        passing &= short  # a frame that was not a candidate is dropped for its "segment"
+        info["shortlist"] = cfg.shortlist
     keep = np.zeros(n, dtype=bool)
     gaps: list[Gap] = []
     if n:
@@ -463,7 +569,7 @@ def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> S
             if passing[b]:
                 continue
             a, e = int(starts[sid]), int(ends[sid])
-            counts = Counter(CRITERIA[c - 1] for c in code[a : e + 1].tolist())
+            counts = Counter(CRITERIA[c - 1] for c in code[a : e + 1].tolist() if 0 < c <= len(CRITERIA))
             reason = max(CRITERIA, key=lambda c: (counts.get(c, 0), -CRITERIA.index(c)))
             gaps.append(
                 Gap(

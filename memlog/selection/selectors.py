@@ -42,8 +42,9 @@ def select(
     """Run the selector ``name`` with ``SELECTORS[name]`` updated by ``overrides``; then,
     if ``dedup`` is given, drop near-duplicates (:func:`drop_duplicates`).
 
-    For "segment", giving a spacing (``spacing_m``/``spacing_s``/``spacing_frames``) or
-    ``by="view"`` without ``keep_fraction`` replaces the default ``keep_fraction``.
+    For "segment", giving a spacing (``spacing_m``/``spacing_s``/``spacing_frames``), or
+    ``view_distance`` with ``by="view"`` (segments of a fixed view change from their first frame),
+    replaces the default ``keep_fraction``.
     """
     if name not in _RUNNERS:
         raise ConfigError(f"unknown selector {name!r}; choose one of {sorted(_RUNNERS)}")
@@ -54,7 +55,8 @@ def select(
     if unknown:
         raise ConfigError(f"unknown setting(s) {unknown} for selector {name!r}; valid: {sorted(valid)}")
     if name == "segment" and "keep_fraction" not in overrides:
-        if any(overrides.get(k) is not None for k in _SIZE_KEYS) or overrides.get("by") == "view":
+        if any(overrides.get(k) is not None for k in _SIZE_KEYS) or (
+                overrides.get("by") == "view" and "view_distance" in overrides):
             settings.pop("keep_fraction", None)
     settings.update(overrides)
     if "weights" in settings and settings["weights"] is not None:

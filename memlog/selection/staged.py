@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from memlog.selection.segment import geometric_score
+from memlog.selection.segment import MS_DIGITS, geometric_score, shortlist_rows
 
 __all__ = ["MSResult", "MSState", "choose_in_segment", "shortlist_rows", "ms_to_beat"]
 
@@ -95,20 +95,6 @@ def _beats(value: float, row: int, lead_value: float, lead_row: int) -> bool:
     return value > lead_value or (value == lead_value and row < lead_row)
 
 
-def shortlist_rows(rows: Sequence[int], upper: Sequence[float], k: int) -> list[int]:
-    """The best ``k`` rows by ``upper``, spread over the segment: the rows are cut into ``k``
-    consecutive parts and the best row of each part is taken (ties: earlier row)."""
-    rows = list(rows)
-    if k >= len(rows):
-        return rows
-    parts = np.array_split(np.arange(len(rows)), k)
-    out = []
-    for p in parts:
-        best = min(p.tolist(), key=lambda i: (-upper[i], rows[i]))
-        out.append(rows[best])
-    return sorted(out)
-
-
 def choose_in_segment(
     rows: Sequence[int],
     ss: NDArray[np.float64],
@@ -119,7 +105,7 @@ def choose_in_segment(
     min_ms: float = 0.0,
     ms_max: NDArray[np.float64] | None = None,
     shortlist: int | None = None,
-    digits: int | None = 6,
+    digits: int | None = MS_DIGITS,
     prepare: Callable[[list[int]], None] | None = None,
 ) -> tuple[int | None, dict[int, MSState]]:
     """The winning row of one segment, and the MS state of every candidate row.

@@ -63,8 +63,11 @@ class ScoreTable:
     ``positions`` is [N, 2] or [N, 3] metres in a local frame (rows with any NaN are
     unknown); ``descriptors`` is [N, d] float32, each finite row L2-normalised (rows with
     any NaN are unknown). ``ds`` is the optional distinctiveness criterion (float64 in (0, 1),
-    NaN = unknown; :mod:`memlog.selection.distinctiveness`). Columns are copied and converted on
-    construction.
+    NaN = unknown; :mod:`memlog.selection.distinctiveness`). ``view`` is the optional [N, v]
+    float32 view vector of each frame (:func:`memlog.scoring.scorer.view_vector`: a small
+    zero-mean grey thumbnail, unit length, zero for a blank frame, NaN = unknown): consecutive
+    frames' distance measures how much the view changed (view segments, stops). Columns are copied
+    and converted on construction.
     """
 
     index: NDArray[np.int64]
@@ -76,9 +79,15 @@ class ScoreTable:
     descriptors: NDArray[np.float32] | None = None
     topic: str = ""
     ds: NDArray[np.float64] | None = None
+    view: NDArray[np.float32] | None = None
 
     def __post_init__(self) -> None:
         self.index = _int_column("index", self.index)
+        if self.view is not None:
+            v = np.asarray(self.view, dtype=np.float32)
+            if v.ndim != 2 or v.shape[0] != len(self.index):
+                raise SelectionError(f"ScoreTable.view must have shape [{len(self.index)}, v], got {v.shape}")
+            self.view = v.copy()
         if self.ds is not None:
             self.ds = _float_column("ds", self.ds)
             if len(self.ds) != len(self.index):
@@ -170,7 +179,25 @@ class ScoreTable:
             descriptors=None if self.descriptors is None else self.descriptors[r],
             topic=self.topic,
             ds=None if self.ds is None else self.ds[r],
+            view=None if self.view is None else self.view[r],
         )
+
+    def view_steps(self) -> NDArray[np.float64] | None:
+        """How much the view changed from each row's predecessor (cosine distance of the view
+        vectors; 0 for the first row, 0 between two blank frames, 1 between a blank and a
+        non-blank one; NaN where a vector is unknown); None without view vectors."""
+        if self.view is None:
+            return None
+        v = self.view.astype(np.float64)
+        out = np.zeros(self.n)
+        if self.n > 1:
+            dots = np.einsum("ij,ij->i", v[1:], v[:-1])
+            norms = np.linalg.norm(v, axis=1)
+            blank = norms < 1e-6
+            both = blank[1:] & blank[:-1]
+            one = blank[1:] ^ blank[:-1]
+            out[1:] = np.where(both, 0.0, np.where(one, 1.0, np.clip(1.0 - dots, 0.0, 2.0)))
+        return out
 
 
 @dataclass(eq=False)

@@ -44,6 +44,7 @@ from memlog.outputs.descriptor_table import write_descriptors
 from memlog.outputs.maplog import MapLogWriter
 from memlog.progress import info, progress
 from memlog.scoring.config import ScoreConfig
+from memlog.scoring.scorer import view_vector
 from memlog.selection import ScoreTable, Selection
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.selection.segment import SegmentConfig, segment_ids
@@ -161,11 +162,13 @@ def _val(v: Any) -> float:
 
 
 def score_table(records: list[dict[str, Any]], topic: str, track: PositionTrack | None = None,
-                descriptors: np.ndarray | None = None, ds: dict[int, float] | None = None) -> ScoreTable:
+                descriptors: np.ndarray | None = None, ds: dict[int, float] | None = None,
+                view: np.ndarray | None = None) -> ScoreTable:
     """A ScoreTable from score records (``T/memlog/scores`` messages) of one topic; records of
     frames that did not decode are left out. Where MS was only bounded (staged selection), its
-    lower bound stands in: such a frame provably did not win its segment. ``ds``: distinctiveness by
-    frame index."""
+    lower bound stands in: such a frame provably did not win its segment, or was its segment's one
+    candidate (MS did not choose). ``ds``: distinctiveness by frame index; ``descriptors``/``view``
+    one row per kept record."""
     recs = [r for r in records if r.get("rejected_by") != "undecodable"]
     t = np.array([r["log_time"] for r in recs], dtype=np.int64)
     pos = track.at(t.tolist()) if track is not None and len(recs) else None
@@ -176,17 +179,15 @@ def score_table(records: list[dict[str, Any]], topic: str, track: PositionTrack 
         ms=np.array([_val(r["ms"] if r["ms"] is not None else r.get("ms_low")) for r in recs]),
         ss=np.array([_val(r["ss"]) for r in recs]),
         es=np.array([_val(r["es"]) for r in recs]), positions=pos, descriptors=descriptors, topic=topic,
-        ds=None if ds is None else np.array([ds.get(r["frame_index"], np.nan) for r in recs]),
+        ds=None if ds is None else np.array([ds.get(r["frame_index"], np.nan) for r in recs]), view=view,
     )
 
 
 def collect_scores(
-    log: str, reader: LogReader, config: ScoreConfig, window: FrameWindow, executor: Executor | None = None, *,
-    thumbnails: dict[str, dict[int, np.ndarray]] | None = None
+    log: str, reader: LogReader, config: ScoreConfig, window: FrameWindow, executor: Executor | None = None,
 ) -> Records:
     """Score the frames of ``window`` without writing them: score records per camera topic (as in
-    ``T/memlog/scores``). ``thumbnails`` (when given) receives each frame's thumbnail descriptor,
-    for near-duplicate removal and view segments (decoded again from the record's frame)."""
+    ``T/memlog/scores``)."""
     out: Records = {}
     total = reader.count_frames(window)
     frames = scored_frames(log, reader, config, window, executor=executor)
@@ -194,21 +195,27 @@ def collect_scores(
         rec = scores_message(item.frame, item.score, config, item.error)
         rec.pop("memorability", None)
         out.setdefault(item.frame.topic, []).append(rec)
-    if thumbnails is not None:
-        for t, recs in out.items():
-            thumbnails[t] = _thumbnails(reader, t, {r["frame_index"] for r in recs if r["rejected_by"] != "undecodable"})
     return out
 
 
-def _thumbnails(reader: LogReader, topic: str, indices: set[int]) -> dict[int, np.ndarray]:
-    """Thumbnail descriptors of the given frames of ``topic`` (a pass over that topic)."""
-    d = make_describer("thumbnail")
-    out: dict[int, np.ndarray] = {}
+Looks = dict[str, dict[int, tuple[np.ndarray | None, np.ndarray | None]]]
+"""What selection sees of each frame besides its scores, by topic and frame index: its thumbnail
+descriptor (near-duplicates) and its view vector (view change, stops); None when not needed."""
+
+
+def frame_looks(reader: LogReader, topic: str, indices: set[int], thumbs: bool, views: bool
+                ) -> dict[int, tuple[np.ndarray | None, np.ndarray | None]]:
+    """:data:`Looks` of the given frames of ``topic`` (one pass over that topic's frames)."""
+    d = make_describer("thumbnail") if thumbs else None
+    out: dict[int, tuple[np.ndarray | None, np.ndarray | None]] = {}
     for f in reader.frames([topic], indices={topic: indices}):
         try:
-            out[f.index] = d.describe([f.decode_bgr()])[0]
+            bgr = f.decode_bgr()
         except ImageDecodeError as exc:  # reported; it has no scores either
             reader.decode_error(f, exc)
+            continue
+        out[f.index] = (d.describe([bgr])[0] if d is not None else None,
+                        view_vector(bgr).astype(np.float32) if views else None)
     return out
 
 
@@ -247,51 +254,68 @@ def _stageable(cfg: MapConfig) -> bool:
 
 
 def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topic: Records,
-                track: PositionTrack | None, thumbs: dict[str, dict[int, np.ndarray]] | None,
+                track: PositionTrack | None, looks: Looks | None,
                 ds_by_topic: dict[str, dict[int, float]] | None = None) -> dict[str, Selection]:
-    """Select once per topic from the score records (and thumbnails when selection needs them)."""
+    """Select once per topic from the score records (and the frames' looks when selection needs them)."""
     selections: dict[str, Selection] = {}
     for t in cams:
         recs = recs_by_topic.get(t, [])
-        descs = None
-        if thumbs is not None and recs:
-            have = thumbs.get(t, {})
+        descs = view = None
+        if looks is not None and recs:
+            have = looks.get(t, {})
             recs = [r for r in recs if r["frame_index"] in have]
-            descs = np.stack([have[r["frame_index"]] for r in recs]).astype(np.float32) if recs else None
-        table = score_table(recs, t, track, descs, None if ds_by_topic is None else ds_by_topic.get(t, {}))
+            if recs and cfg.select.needs_descriptors:
+                descs = np.stack([np.asarray(have[r["frame_index"]][0]) for r in recs]).astype(np.float32)
+            if recs and cfg.select.needs_view:
+                view = np.stack([np.asarray(have[r["frame_index"]][1]) for r in recs]).astype(np.float32)
+        table = score_table(recs, t, track, descs, None if ds_by_topic is None else ds_by_topic.get(t, {}), view)
         left_out = len(recs_by_topic.get(t, [])) - table.n
         if left_out:
             reader.warn(f"{reader.path}: topic {t}: {left_out} frame(s) left out of the selection "
                         "(they did not decode; see the warnings above)")
-        selections[t] = cfg.select.run(table)
+        selections[t] = cfg.select.run(table, shortlist=_shortlist(cfg), ms_bound=_ms_bound(cfg))
     return selections
 
 
+def _shortlist(cfg: MapConfig) -> int | None:
+    """Candidates per segment of segment selection (None: every frame, exact)."""
+    return None if cfg.candidates == "all" or cfg.select.mode != "segment" else int(cfg.candidates)
+
+
+def _ms_bound(cfg: MapConfig) -> str:
+    return "one" if cfg.score.normalize == "static" else "ss"
+
+
+def _needs_looks(cfg: MapConfig) -> bool:
+    return cfg.select.needs_descriptors or cfg.select.needs_view
+
+
 Crops = tuple[int | None, int | None]
-Thumbs = dict[str, dict[int, np.ndarray]] | None
 
 
 def _full(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: PositionTrack | None,
-          ex: Executor, scores: str | os.PathLike[str] | Records | None) -> tuple[Records, Thumbs, Crops]:
-    """Every score of every frame (or a reused scoring run), and thumbnails when selection needs them."""
+          ex: Executor, scores: str | os.PathLike[str] | Records | None) -> tuple[Records, Looks | None, Crops]:
+    """Every score of every frame (or a reused scoring run), and the frames' looks when selection
+    needs them (one more pass over the frames)."""
     sel_cfg = cfg.select
-    thumbs: dict[str, dict[int, np.ndarray]] | None = {} if sel_cfg.needs_descriptors else None
     crops: Crops = (None, None)
     if scores is None:
         score_cfg = cfg.score.replace(all_scores=True) if sel_cfg.needs_all_scores else cfg.score
-        recs_by_topic = collect_scores(log, reader, score_cfg, FrameWindow(tuple(cams), stride=cfg.stride), ex, thumbnails=thumbs)
+        recs_by_topic = collect_scores(log, reader, score_cfg, FrameWindow(tuple(cams), stride=cfg.stride), ex)
         n = sum(int(r.get("crops_scored") or 0) for recs in recs_by_topic.values() for r in recs)
         crops = (n, n if score_cfg.all_scores else None)
     else:
         recs_by_topic = _scores_from(scores, cfg, log)
-        if thumbs is not None:
-            for t in cams:
-                thumbs[t] = _thumbnails(reader, t, {r["frame_index"] for r in recs_by_topic.get(t, [])})
-    return recs_by_topic, thumbs, crops
+    looks: Looks | None = None
+    if _needs_looks(cfg):
+        looks = {t: frame_looks(reader, t, {r["frame_index"] for r in recs_by_topic.get(t, [])
+                                           if r.get("rejected_by") != "undecodable"},
+                                sel_cfg.needs_descriptors, sel_cfg.needs_view) for t in cams}
+    return recs_by_topic, looks, crops
 
 
 def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: PositionTrack | None,
-            ex: Executor) -> tuple[Records, Thumbs, Crops]:
+            ex: Executor) -> tuple[Records, Looks | None, Crops]:
     """Staged segment selection (:mod:`memlog.steps.map_scoring`): the cheap criteria of every
     frame, segments, then ResMem only where it can change which frame a segment keeps."""
     sel_cfg = cfg.select
@@ -299,10 +323,12 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
     window = FrameWindow(tuple(cams), stride=cfg.stride)
     cheap: dict[str, list[CheapFrame]] = {t: [] for t in cams}
     total = reader.count_frames(window)
-    for cf in progress(cheap_frames(log, reader, score_cfg, window, ex, thumbs=sel_cfg.needs_descriptors),
+    for cf in progress(cheap_frames(log, reader, score_cfg, window, ex, thumbs=sel_cfg.needs_descriptors,
+                                    views=sel_cfg.needs_view),
                        total=total, desc="cheap scores", unit="frame"):
         cheap[cf.frame.topic].append(cf)
     seg_cfg = SegmentConfig(**sel_cfg.segment_settings())
+    shortlist = _shortlist(cfg)
     jobs: list[tuple[str, list[int], SegmentJob]] = []
     for t in cams:
         good = [cf for cf in cheap[t] if cf.error is None]
@@ -315,6 +341,7 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
             es=np.array([round(float(cf.es or 0.0), 6) for cf in good]),
             positions=_positions(track, good),
             descriptors=np.stack([np.asarray(cf.thumb) for cf in good]) if sel_cfg.needs_descriptors else None,
+            view=np.stack([np.asarray(cf.view) for cf in good]) if sel_cfg.needs_view else None,
             topic=t)
         seg, _ = segment_ids(table, seg_cfg)
         passing = (table.ss >= sel_cfg.min_ss) & (table.es >= sel_cfg.min_es)
@@ -331,7 +358,7 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
     batches = [jobs[i:i + group] for i in range(0, len(jobs), group)]
     wcfg = score_cfg.replace(threads=job_threads(ex, score_cfg.threads))
     args = ((log, score_cfg if isinstance(ex, InProcess) else wcfg, window, [j for _, _, j in b], sel_cfg.weights,
-             sel_cfg.min_ms, None if cfg.candidates == "all" else cfg.candidates) for b in batches)
+             sel_cfg.min_ms, shortlist) for b in batches)
     results = progress(ex.map_ordered(choose_chunk, args), total=len(batches), desc="memorability", unit="job")
     for b, res in zip(batches, results):
         for (t, _rows, job), r in zip(b, res):
@@ -347,9 +374,10 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
             run += state.crops_run if state is not None else 0
             full += cf.crops_needed
         recs_by_topic[t] = recs
-    thumbs = {t: {cf.frame.index: cf.thumb for cf in cheap[t] if cf.thumb is not None} for t in cams} \
-        if sel_cfg.needs_descriptors else None
-    return recs_by_topic, thumbs, (run, full)
+    looks: Looks | None = None
+    if _needs_looks(cfg):
+        looks = {t: {cf.frame.index: (cf.thumb, cf.view) for cf in cheap[t] if cf.error is None} for t in cams}
+    return recs_by_topic, looks, (run, full)
 
 
 def _positions(track: PositionTrack | None, frames: list[CheapFrame]) -> np.ndarray | None:
@@ -398,9 +426,9 @@ def make_map(
         ex = executor or make_executor(cfg.workers)
         try:
             if scores is None and _stageable(cfg):
-                recs_by_topic, thumbs, crops = _staged(str(log), reader, cfg, cams, track, ex)
+                recs_by_topic, looks, crops = _staged(str(log), reader, cfg, cams, track, ex)
             else:
-                recs_by_topic, thumbs, crops = _full(str(log), reader, cfg, cams, track, ex, scores)
+                recs_by_topic, looks, crops = _full(str(log), reader, cfg, cams, track, ex, scores)
         finally:
             if executor is None:
                 ex.close()
@@ -412,7 +440,7 @@ def make_map(
             ds_by_topic, known, whitening = drive_distinctiveness(
                 reader, cams, describer, whiten=cfg.whiten, whiten_dim=cfg.whiten_dim, config=sel_cfg.distinct_config(),
                 indices={t: {r["frame_index"] for r in recs_by_topic.get(t, [])} for t in cams}, known=known)
-        selections = _selections(reader, cfg, cams, recs_by_topic, track, thumbs,
+        selections = _selections(reader, cfg, cams, recs_by_topic, track, looks,
                                  ds_by_topic if sel_cfg.needs_distinctiveness else None)
         kept = {t: {int(i) for i in s.index[s.keep]} for t, s in selections.items()}
         n_in = sum(len(s.index) for s in selections.values())

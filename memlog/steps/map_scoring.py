@@ -29,7 +29,7 @@ from memlog.io.records import ReadReport
 from memlog.models.resmem import crop_weights
 from memlog.outputs.annotated import scores_message
 from memlog.scoring.config import ScoreConfig
-from memlog.scoring.scorer import FrameScore, Scorer, resize_frame
+from memlog.scoring.scorer import FrameScore, Scorer, resize_frame, view_vector
 from memlog.scoring.staticity import static_map
 from memlog.selection.staged import MSResult, MSState, choose_in_segment
 from memlog.steps.parallel import Executor, InProcess, cached, job_threads
@@ -51,6 +51,7 @@ class CheapFrame:
     crops_needed: int = 0  # crops of non-zero weight: what scoring it fully would run
     timing_ms: dict[str, float] = field(default_factory=dict)
     thumb: npt.NDArray[np.float32] | None = None
+    view: npt.NDArray[np.float32] | None = None
     error: str | None = None
 
 
@@ -59,7 +60,7 @@ def _scorer_for(config: ScoreConfig) -> Scorer:
 
 
 def cheap_chunk(log: str, config: ScoreConfig, window: FrameWindow, chunk: Chunk | None,
-                thumbs: bool) -> tuple[list[CheapFrame], ReadReport, list[FrameError]]:
+                thumbs: bool, views: bool = False) -> tuple[list[CheapFrame], ReadReport, list[FrameError]]:
     """Pass 1 on one chunk (a worker's job): the cheap criteria of its frames."""
     scorer = _scorer_for(config)
     thumb = make_describer("thumbnail") if thumbs else None
@@ -86,21 +87,23 @@ def cheap_chunk(log: str, config: ScoreConfig, window: FrameWindow, chunk: Chunk
                             int(np.count_nonzero(crop_weights(c.static_map) > 0)), {"decode": dt, **c.timing_ms})
             if thumb is not None:
                 cf.thumb = thumb.describe([bgr])[0]
+            if views:
+                cf.view = view_vector(bgr).astype(np.float32)
             out.append(cf)
         return out, reader.report, errors
 
 
 def cheap_frames(log: str, reader: LogReader, config: ScoreConfig, window: FrameWindow, executor: Executor,
-                 *, thumbs: bool, chunk_frames: int = 64) -> Iterator[CheapFrame]:
+                 *, thumbs: bool, views: bool = False, chunk_frames: int = 64) -> Iterator[CheapFrame]:
     """Pass 1 over ``window`` in log-time order (here, or in chunks on the executor's workers);
     workers' frame-level damage is added to ``reader.report``."""
     if isinstance(executor, InProcess):
-        frames, _, _ = cheap_chunk(log, config, window, None, thumbs)
+        frames, _, _ = cheap_chunk(log, config, window, None, thumbs, views)
         yield from frames
         return
     wcfg = config.replace(threads=job_threads(executor, config.threads))
     for frames, rep, errors in executor.map_ordered(
-            cheap_chunk, ((log, wcfg, window, c, thumbs) for c in plan_chunks(reader, window, chunk_frames))):
+            cheap_chunk, ((log, wcfg, window, c, thumbs, views) for c in plan_chunks(reader, window, chunk_frames))):
         reader.absorb(rep, errors)
         yield from frames
 
