@@ -246,6 +246,7 @@ def test_staged_table_is_what_full_scoring_selects_from(setting: str, tmp_path: 
     assert want.segment_id is not None and want.segment_id.tolist() == DEMO_SEGMENTS
     assert want.kept_indices.tolist() == {"default": [2, 6], "min_ms": [5], "ms_weight": [2, 5]}[setting]
     assert _kept(staged) == {COMP: want.kept_indices.tolist()}
+    assert staged.selections[COMP].segment_id.tolist() == DEMO_SEGMENTS
 
     records, table = seen[COMP]
     assert table.index.tolist() == full.index.tolist()
@@ -291,6 +292,7 @@ def test_default_map_keeps_the_best_cheap_bound_of_each_segment(tmp_path: Path, 
                 want.append(best)
         s = res.selections[topic]
         assert s.index.tolist() == index and s.kept_indices.tolist() == want, topic
+        assert s.segment_id is not None and s.segment_id.tolist() == DEMO_SEGMENTS
         by_index = {r["frame_index"]: r for r in recs[topic]}
         assert sorted(by_index) == want  # the map holds the kept frames, each with its scores
         for i in want:
