@@ -1,8 +1,9 @@
 """``memlog batch`` without Ray: placement, manifests, usage errors before any work, local worker
 processes giving the one-process outputs, and resume. (Ray itself: ``tests/test_batch_ray.py``.)
 
-Scoring here uses the stand-in ResMem (``tests/stand_in.py``); local worker processes are forked
-from the test process and inherit it.
+The resume test scores with the stand-in ResMem (``tests/stand_in.py``; local worker processes are
+forked from the test process and inherit it); the last test runs the real models on a fixture log
+of every format.
 """
 
 from __future__ import annotations
@@ -262,3 +263,48 @@ def test_a_broken_pool_is_replaced_for_the_logs_after_it(tmp_path: Path, monkeyp
     assert not marker.exists() and "failed" in status
     assert status[-1] == "ok" and status.count("ok") >= 2, status  # the logs after the break ran
     assert sum(r.worker_failures for r in res.logs) >= 1
+
+
+# -- the real models, every fixture format ----------------------------------------------------------
+#: one fixture per log format and message encoding memlog reads: MCAP (ROS 2 CDR, ROS 1, ROS 2 IDL,
+#: Foxglove JSON and protobuf), ROS 1 bag, ROS 2 bag (sqlite3 and MCAP storage). (encodings.mcap,
+#: the raw image encodings in a ROS 2 MCAP, is left out: 19 topics, a format already here.)
+FORMATS = ["demo.mcap", "ros1.mcap", "ros2idl.mcap", "foxglove_json.mcap", "foxglove_proto.mcap", "ros1.bag",
+           "ros2_sqlite", "ros2_mcap"]
+
+
+def test_every_format_with_the_real_models_gives_the_one_process_outputs(tmp_path: Path) -> None:
+    """The real ResMem, detector and descriptor on two local worker processes (one frame per job):
+    each format's outputs are those of ``score`` + ``map`` on this process, timing fields aside."""
+    import json as _json
+    from collections import Counter
+
+    from memlog.io.open import open_log
+    from memlog.models.cache import recorded_sha256
+    from memlog.scoring.memorability import resmem_onnx_path
+    from mcap.reader import make_reader
+
+    import shutil
+
+    logs = [FIXTURES / n for n in FORMATS if n != "ros1.mcap"]
+    logs.append(tmp_path / "ros1_profile.mcap")  # its outputs would be named like ros1.bag's
+    shutil.copyfile(FIXTURES / "ros1.mcap", logs[-1])
+    cfg = BatchConfig(map=MapConfig(stride=2), workers=2, chunk_frames=1)
+    (tmp_path / "ref").mkdir()
+    want = {log.name: reference(log, tmp_path / "ref", cfg, stand_in=False) for log in logs}
+    res = batch(logs, tmp_path / "out", cfg)
+    assert [r.status for r in res.logs] == ["ok"] * len(logs) and res.exit_code == 0
+    assert res.executor["kind"] == "processes" and res.executor["workers"] == 2
+    real = recorded_sha256(resmem_onnx_path())
+    assert real
+    for log, r in zip(logs, res.logs):
+        assert_same_outputs(r.outputs, want[log.name])
+        with open_log(log) as reader:  # every 2nd frame of each camera topic
+            per_topic = Counter(f.topic for f in reader.frames())
+        assert r.frames == sum((n + 1) // 2 for n in per_topic.values()), log.name
+        with open(r.outputs["scored"], "rb") as fh:
+            run = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}["memlog_run"]
+        assert _json.loads(run["models"])["resmem"] == real, log.name  # the real ResMem, not the stand-in
+        with open(r.outputs["map"], "rb") as fh:
+            made = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}["memlog_map"]
+        assert _json.loads(made["resmem_crops_run"]) > 0, log.name  # ResMem really ran on each log

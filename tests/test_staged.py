@@ -3,7 +3,9 @@ every frame with every score.
 
 * :func:`choose_in_segment` against brute force on random segments, with a crop loop that bounds
   MS the way ResMem's does (ties, minimum MS, normalised MS);
-* ``memlog map`` staged vs every score on the demo fixture with the real ResMem;
+* ``memlog map`` staged vs every score on the demo fixture with the real ResMem; the staged
+  selection (``--candidates all``, and the default ``--candidates 1``) against an independent
+  scoring of every frame (:class:`~memlog.scoring.scorer.Scorer`, no map code);
 * on the shared EuRoC and Nordland logs at several keep fractions, a spacing and with --dedup,
   with a stand-in ResMem (a deterministic function of each crop's pixels, so the crop loop,
   segments, positions and thresholds are the real ones and both runs stay fast).
@@ -22,7 +24,7 @@ from memlog.outputs.annotated import read_scores
 from memlog.scoring.config import ScoreConfig
 from memlog.selection import ScoreTable
 from memlog.selection.config import SelectionConfig
-from memlog.selection.segment import geometric_score, select_segments, SegmentConfig
+from memlog.selection.segment import geometric_score, segment_ids, select_segments, SegmentConfig
 from memlog.selection.staged import MSResult, choose_in_segment, ms_to_beat, shortlist_rows
 from memlog.steps.map import MapConfig, make_map
 from memlog.steps.score import score
@@ -148,6 +150,160 @@ def test_staged_map_equals_full_scoring_with_resmem(tmp_path: Path) -> None:
             assert recs[int(i)]["ms_exact"] and recs[int(i)]["ms"] == pytest.approx(all_recs[int(i)]["ms"], abs=2e-6)
 
 
+class _Independent:
+    """Scores of demo's frames computed here, frame by frame, with the scorer alone (every score,
+    no early exit; no map, staged or selection code): the expectation the map step is checked
+    against. SS/ES of every frame at once (cheap); MS (ResMem) only for the frames asked for."""
+
+    def __init__(self) -> None:
+        from memlog.io.open import open_log
+        from memlog.io.positions import read_track
+        from memlog.scoring.scorer import Scorer
+
+        self.scorer = Scorer(ScoreConfig(all_scores=True))
+        self.frames: dict[str, list[tuple[int, int]]] = {}  # topic -> (frame index, log time)
+        self.cheap: dict[tuple[str, int], Any] = {}
+        self._ms: dict[tuple[str, int], tuple[float, int]] = {}
+        with open_log(DEMO) as log:
+            self.track = read_track(log)
+            for f in log.frames():
+                self.frames.setdefault(f.topic, []).append((f.index, f.log_time_ns))
+                self.cheap[(f.topic, f.index)] = self.scorer.cheap(f.decode_bgr(), keep_maps=False)
+
+    def ss_es(self, topic: str) -> tuple[np.ndarray, np.ndarray]:
+        """SS and ES of every frame of ``topic``, as score records store them (6 decimals)."""
+        c = [self.cheap[(topic, i)] for i, _ in self.frames[topic]]
+        return np.array([round(x.ss, 6) for x in c]), np.array([round(float(x.es), 6) for x in c])
+
+    def ms(self, topic: str, index: int) -> float:
+        """ResMem's MS of one frame (every crop), as score records store it."""
+        return round(self._full(topic, index)[0], 6)
+
+    def crops(self, topic: str, index: int) -> int:
+        """The crops ResMem scores for that frame's exact MS."""
+        return self._full(topic, index)[1]
+
+    def _full(self, topic: str, index: int) -> tuple[float, int]:
+        key = (topic, index)
+        if key not in self._ms:
+            r = self.scorer.finish(self.cheap[key])
+            assert r.ms_exact and r.ms is not None
+            self._ms[key] = (float(r.ms), r.crops_scored)
+        return self._ms[key]
+
+    def table(self, topic: str, with_ms: bool = True) -> ScoreTable:
+        """The ScoreTable full scoring selects from: every frame, every score, the log's positions."""
+        ss, es = self.ss_es(topic)
+        idx = np.array([i for i, _ in self.frames[topic]], dtype=np.int64)
+        t = np.array([ts for _, ts in self.frames[topic]], dtype=np.int64)
+        ms = np.array([self.ms(topic, int(i)) for i in idx]) if with_ms else np.zeros(len(idx))
+        pos = self.track.at(t.tolist()) if self.track is not None else None
+        return ScoreTable(index=idx, t_ns=t, ms=ms, ss=ss, es=es, positions=pos, topic=topic)
+
+
+@pytest.fixture(scope="module")
+def independent() -> _Independent:
+    return _Independent()
+
+
+# demo's drive: the camera frames lie at 0, 5, 10, 15, 15, 15, 20, 25 m (a stop at 15 m), so the
+# default 0.25 of 8 frames is 2 segments of 12.5 m each: frames 0-2 and 3-7
+DEMO_SEGMENTS = [0, 0, 0, 1, 1, 1, 1, 1]
+
+
+# On demo the frame with the best cheap bound of a segment is also its best frame by default, so
+# two settings make the staged choice go further: a minimum MS that frame 6 (MS 0.857, the best
+# bound of frames 3-7) misses and frame 5 (0.896) passes, and MS weighted so that frame 5 wins;
+# the staged map must then score past the first candidate (and stop the crop loop of others early).
+STAGED_SETTINGS = {"default": {}, "min_ms": {"min_ms": 0.86}, "ms_weight": {"weights": (10.0, 1.0, 1.0)}}
+
+
+@pytest.mark.parametrize("setting", sorted(STAGED_SETTINGS))
+def test_staged_table_is_what_full_scoring_selects_from(setting: str, tmp_path: Path, independent: _Independent,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The staged map (``--candidates all``) keeps the frames that scoring every frame with every
+    score and selecting by segment keeps; the table it selected from (unscored frames with their
+    lower bound) bounds every frame's true MS and gives that selection."""
+    import memlog.steps.map as map_step
+
+    seen: dict[str, tuple[list[dict[str, Any]], ScoreTable]] = {}
+    real_table = map_step.score_table
+
+    def spy(records: list[dict[str, Any]], topic: str, *args: Any, **kw: Any) -> ScoreTable:
+        table = real_table(records, topic, *args, **kw)
+        seen[topic] = (list(records), table)
+        return table
+
+    monkeypatch.setattr(map_step, "score_table", spy)
+    sel = SelectionConfig(keep_fraction=0.25, **STAGED_SETTINGS[setting])
+    staged = make_map(DEMO, tmp_path / "staged.mcap",
+                      MapConfig(select=sel, topics=(COMP,), descriptor=None, candidates="all"))
+    assert staged.crops_run is not None and staged.crops_full is not None
+    assert staged.crops_run < staged.crops_full  # ResMem skipped where it could not change the map
+
+    full = independent.table(COMP)
+    want = select_segments(full, SegmentConfig(**sel.segment_settings()))
+    assert want.segment_id is not None and want.segment_id.tolist() == DEMO_SEGMENTS
+    assert want.kept_indices.tolist() == {"default": [2, 6], "min_ms": [5], "ms_weight": [2, 5]}[setting]
+    assert _kept(staged) == {COMP: want.kept_indices.tolist()}
+    assert staged.selections[COMP].segment_id.tolist() == DEMO_SEGMENTS
+
+    records, table = seen[COMP]
+    assert table.index.tolist() == full.index.tolist()
+    assert table.ss == pytest.approx(full.ss, abs=1e-6) and table.es == pytest.approx(full.es, abs=1e-6)
+    unscored = 0
+    for r, true_ms, ms_in_table in zip(records, full.ms, table.ms):
+        if r["ms_exact"]:
+            assert r["ms"] == pytest.approx(true_ms, abs=2e-6) and ms_in_table == r["ms"]
+        else:  # MS not computed: bounds that hold the true MS, the lower one in the table
+            assert r["ms"] is None and ms_in_table == r["ms_low"]
+            assert r["ms_low"] - 1e-6 <= true_ms <= r["ms_high"] + 1e-6
+            unscored += r["ss"] >= sel.min_ss
+    assert unscored > 0  # frames that could have been kept entered selection with a bound only (the staged path)
+    again = select_segments(table, SegmentConfig(**sel.segment_settings()))
+    assert again.kept_indices.tolist() == want.kept_indices.tolist()
+
+
+def test_default_map_keeps_the_best_cheap_bound_of_each_segment(tmp_path: Path, independent: _Independent) -> None:
+    """``memlog map`` with its defaults (``--candidates 1``) on a fixture: per place segment, the
+    kept frame is the frame with the largest SS^2 ES (the bound of the geometric score, MS <= SS)
+    among the frames passing the minimum scores, and its record carries ResMem's exact MS; ResMem
+    ran on that frame only."""
+    sel = MapConfig().select
+    assert MapConfig().candidates == 1  # the default this test is about
+    res = make_map(DEMO, tmp_path / "map.mcap")
+    recs = read_scores(tmp_path / "map.mcap")
+    assert sorted(res.selections) == sorted(independent.frames) == [COMP, "/camera/image_raw"]
+    crops = 0
+    for topic in sorted(independent.frames):
+        ss, es = independent.ss_es(topic)
+        cheap_table = independent.table(topic, with_ms=False)
+        seg, _ = segment_ids(cheap_table, SegmentConfig(**sel.segment_settings()))
+        assert seg.tolist() == DEMO_SEGMENTS
+        index = cheap_table.index.tolist()
+        passing = (ss >= sel.min_ss) & (es >= sel.min_es)
+        want = []
+        for sid in np.unique(seg):
+            rows = [int(r) for r in np.flatnonzero(seg == sid) if passing[r]]
+            if not rows:
+                continue  # a gap
+            best = index[max(rows, key=lambda r: (ss[r] ** 2 * es[r], -r))]
+            if independent.ms(topic, best) >= sel.min_ms:  # (the one candidate must still pass min_ms)
+                want.append(best)
+        s = res.selections[topic]
+        assert s.index.tolist() == index and s.kept_indices.tolist() == want, topic
+        assert s.segment_id is not None and s.segment_id.tolist() == DEMO_SEGMENTS
+        by_index = {r["frame_index"]: r for r in recs[topic]}
+        assert sorted(by_index) == want  # the map holds the kept frames, each with its scores
+        for i in want:
+            r = by_index[i]
+            assert r["ms_exact"] and r["ms"] == pytest.approx(independent.ms(topic, i), abs=2e-6), (topic, i)
+            assert r["ss"] == pytest.approx(ss[index.index(i)], abs=1e-6)
+            assert r["es"] == pytest.approx(es[index.index(i)], abs=1e-6)
+            crops += independent.crops(topic, i)
+    assert res.crops_run == crops  # ResMem on the one candidate of each segment, nothing else
+
+
 # -- shared logs, stand-in ResMem -----------------------------------------------------------------
 @pytest.fixture()
 def stand_in(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -170,14 +326,6 @@ def test_staged_map_equals_full_scoring_on_shared_logs(name: str, stride: int, t
         assert _kept(staged) == _kept(full), sel
         assert staged.crops_run is not None and staged.crops_full is not None and full.crops_run is not None
         assert staged.crops_run <= full.crops_run
-
-
-def test_staged_table_is_what_full_scoring_selects_from() -> None:
-    """Unscored frames enter selection with their lower bound and never win their segment."""
-    t = ScoreTable(index=np.arange(4), t_ns=np.arange(4), ms=np.array([0.7, 0.0, 0.0, 0.6]),
-                   ss=np.ones(4), es=np.array([0.3, 0.1, 0.1, 0.3]))
-    sel = select_segments(t, SegmentConfig(keep_fraction=0.5, by="count"))
-    assert sel.kept_indices.tolist() == [0, 3]
 
 
 @pytest.mark.parametrize("k", [1, 2])

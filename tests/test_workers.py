@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
@@ -50,14 +51,29 @@ def test_chunks_cover_the_window_in_order(indexed: bool) -> None:
                 assert c.start_ns <= ts < c.end_ns
 
 
-def test_executors_keep_job_order() -> None:
-    jobs = [(i,) for i in range(12)]
-    assert list(InProcess().map_ordered(abs, jobs)) == list(range(12))
-    ex = Processes(2, ahead=3)
+def _finish_late(i: int, delay: float) -> tuple[int, float]:
+    """A job that sleeps ``delay`` seconds, then says which job it was and when it finished."""
+    time.sleep(delay)
+    return i, time.monotonic()
+
+
+# Earlier jobs take longer: on two workers job 1 and 2 finish before job 0 (job 0 holds one
+# worker for 0.8 s while the other runs 1, then 2, ...), so an executor that gave results back
+# as they complete would return 1 before 0.
+_LATE_JOBS = [(0, 0.8), (1, 0.4), (2, 0.0), (3, 0.0), (4, 0.0), (5, 0.0)]
+
+
+@pytest.mark.parametrize("make", [InProcess, lambda: Processes(2, ahead=3)], ids=["InProcess", "Processes"])
+def test_executors_keep_job_order(make) -> None:  # type: ignore[no-untyped-def]
+    ex = make()
     try:
-        assert list(ex.map_ordered(abs, [(-i,) for i in range(12)])) == list(range(12))
+        got = list(ex.map_ordered(_finish_late, _LATE_JOBS))
     finally:
         ex.close()
+    assert [i for i, _ in got] == [i for i, _ in _LATE_JOBS]  # job order ...
+    finished = [i for i, _ in sorted(got, key=lambda r: r[1])]
+    if ex.workers > 1:  # ... although the jobs did finish in another order (one process runs them in turn)
+        assert finished.index(1) < finished.index(0), finished
     assert threads_per_worker(2, 0) >= 1 and threads_per_worker(4, 3) == 3
 
 
