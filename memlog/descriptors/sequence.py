@@ -423,6 +423,13 @@ def _z_of_pairs(p: _Problem, t: npt.NDArray[np.int64], r: npt.NDArray[np.int64])
     return out
 
 
+def _on_map(p: _Problem, x: npt.NDArray[np.float64]) -> BoolArray:
+    """Coordinates within the map's extent (half a frame spacing beyond its first and last frame)."""
+    half = 0.5 * p.spacing
+    out: BoolArray = (x >= p.rc[0] - half) & (x <= p.rc[-1] + half)
+    return out
+
+
 def _votes(p: _Problem, centres: I64, offs: I64, cand: I64, gain: F64, n_places: int) -> tuple[I64, I64]:
     """The best-voted places of each centre: ``(places [B, n_places], speed index [B, n_places])``,
     sorted map rows (-1 = none), distinct by ``p.excl`` (greedy non-maximum suppression, best
@@ -444,9 +451,12 @@ def _votes(p: _Problem, centres: I64, offs: I64, cand: I64, gain: F64, n_places:
         return places, speeds
     vs = np.arange(nv, dtype=np.int64)
     x = p.rc[cr[rr, cc]][:, None] - p.speeds[vs][None, :] * dv[rr][:, None]  # [votes, V]: the centre they imply
+    on_map = _on_map(p, x)  # a centre beyond the map's ends has no frame to vote for (never clipped onto one)
     key = (bi[rr][:, None].astype(np.int64) * m + _nearest(p.rc, x)) * nv + vs[None, :]
-    key = key.ravel()
-    val = np.repeat(g[rr, cc], len(vs))
+    key = key[on_map]
+    val = np.broadcast_to(g[rr, cc][:, None], x.shape)[on_map]
+    if not len(key):
+        return places, speeds
     order = np.argsort(key, kind="stable")
     key, val = key[order], val[order]
     starts = np.r_[0, np.flatnonzero(np.diff(key)) + 1]
@@ -531,7 +541,7 @@ def _score_constant(p: _Problem, centres: I64, offs: I64, places: I64, vbest: I6
     pred = x[:, :, :, None, None] + v[:, :, None, :, None] * d[:, None, None, None, :]  # [B, P, D, S, W]
     rk = _nearest(p.rc, pred)
     tq = np.broadcast_to(t[:, None, None, None, :], rk.shape)
-    inside = np.broadcast_to(valid[:, None, None, None, :] & ok[:, :, None, None, None], rk.shape)
+    inside = valid[:, None, None, None, :] & ok[:, :, None, None, None] & _on_map(p, pred)
     use = inside & _closest_to_their_frame(p, pred, rk, inside) if PAIRING == "mutual" else inside
     z = np.zeros(rk.shape)
     z[use] = _z_of_pairs(p, tq[use], rk[use])
@@ -570,6 +580,7 @@ def _score_dp(p: _Problem, i: int, offs: I64, places: I64) -> tuple[F64, F64, F6
     grid = np.arange(-g, g + 1, dtype=np.float64) * p.unit
     rk = _nearest(p.rc, x[:, None] + grid[None, :])  # [P, G]
     emis = _z_of_pairs(p, np.broadcast_to(t[:, None, None], (w,) + rk.shape), np.broadcast_to(rk, (w,) + rk.shape))
+    emis = np.where(_on_map(p, x[:, None] + grid[None, :])[None], emis, 0.0)  # off the map: no evidence
     n_g = rk.shape[1]
     mid = n_g // 2
     total = np.zeros(len(x))
@@ -717,15 +728,19 @@ def match_sequences(
     run_lo, run_hi = _run_bounds(labels, qc)
     run_len = run_hi - run_lo
     info["runs"] = int(len(np.unique(run_lo))) if n_q else 0
-    use = (run_len >= cfg.length + 1) if cfg.enabled else np.zeros(n_q, bool)
+    # offline: a run of length + 1 frames or more; causal: a frame with length frames of its run
+    # before it (decided from the past only: a live robot does not know how long a run will be)
+    so_far = np.arange(n_q) - run_lo + 1
+    use = ((so_far if cfg.causal else run_len) >= cfg.length + 1) if cfg.enabled else np.zeros(n_q, bool)
     if not cfg.enabled:
         info["fallback"] = "single frames asked for (sequence length 0)"
     elif n_q and not use.any():
         info["fallback"] = (f"no run of {cfg.length + 1} or more ordered frames (a single image, or frames whose "
                             "stamps do not increase): matched frame by frame")
     elif n_q and not use.all():
-        info["fallback"] = (f"{int((~use).sum())} frame(s) in runs shorter than {cfg.length + 1} frames: matched "
-                            "frame by frame")
+        where = (f"with fewer than {cfg.length} frames of their run before them" if cfg.causal else
+                 f"in runs shorter than {cfg.length + 1} frames")
+        info["fallback"] = f"{int((~use).sum())} frame(s) {where}: matched frame by frame"
     else:
         info["fallback"] = None
     info["sequence_queries"] = int(use.sum())
