@@ -23,6 +23,7 @@ Tables (``--tables``):
   DP paths), causal; full map, base reference;
 * ``maps``: the same at full / half / quarter maps, and against references at other frame rates;
 * ``coords``: frames vs time vs positions coordinates;
+* ``design``: the score's design (pairs, normalisation, places competing for the best match);
 * ``sweep``: N (frames before/after) and K (candidates per frame) sweeps, and the confidence
   (margin vs score vs exclusion width);
 * ``speed``: speed range and path model: R@1 and ms per query;
@@ -181,7 +182,7 @@ def tab_quality(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
     rows = []
     for name, q in qs.items():
         rows.append([name, len(q), *(f3(run(q, r, None, cfg)[0]) for cfg in ms.values())])
-    print("\n### R@1 / AUC, full map (800 summer frames), frames coordinate, N = 10, K = 20, speeds 0..3\n")
+    print("\n### R@1 / AUC, full map (800 summer frames), frames coordinate, N = 10, K = 3, speeds 0..3\n")
     print(table(rows, ["query", "frames", *ms]))
 
 
@@ -239,7 +240,7 @@ def tab_sweep(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
     print("\n### N sweep (frames before/after): R@1 / AUC\n")
     print(table(rows, ["N", *hdr]))
     rows = []
-    for kk in (1, 2, 5, 10, 20, 50, 100):
+    for kk in (1, 2, 3, 5, 10, 20, 50):
         cells = []
         for qn, _f, mask in cases:
             m, _res, dt = run(qs[qn], r, mask, SequenceConfig(candidates=kk))
@@ -258,6 +259,33 @@ def tab_sweep(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
     print("\n### Confidence: AUC with the margin / with the score as confidence, by exclusion half-width "
           "(reference frames)\n")
     print(table(rows, ["exclude", *[f"{qn} {f}" for qn, f, _m in cases]]))
+
+
+def tab_design(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
+    """The choices inside the score (module constants of memlog.descriptors.sequence): which pairs
+    a path is scored on, how the sum is normalised, how many voted places compete for the best."""
+    import memlog.descriptors.sequence as S
+    from memlog.descriptors.sequence import SequenceConfig
+
+    saved = (S.PAIRING, S.SCORE_NORM, S.EXACT_PLACES)
+    r = refs["base"]
+    rows = []
+    variants = [("all frames, mean (SeqSLAM)", "all", "mean", 3), ("all frames, sum/sqrt(n)", "all", "sqrt", 3),
+                ("mutual nearest, mean", "mutual", "mean", 3), ("mutual nearest, sum/sqrt(n) (default)", "mutual", "sqrt", 3),
+                ("default, 2 places compete", "mutual", "sqrt", 2), ("default, 6 places compete", "mutual", "sqrt", 6),
+                ("default, 12 places compete", "mutual", "sqrt", 12)]
+    try:
+        for name, pairing, norm, places in variants:
+            S.PAIRING, S.SCORE_NORM, S.EXACT_PLACES = pairing, norm, places
+            cells = []
+            for qn in ("base", "mixed", "double-rate"):
+                for step in (1, 2, 4):
+                    cells.append(f3(run(qs[qn], r, None if step == 1 else every(len(r), step), SequenceConfig())[0]))
+            rows.append([name, *cells])
+    finally:
+        S.PAIRING, S.SCORE_NORM, S.EXACT_PLACES = saved
+    print("\n### Score design: R@1 / AUC (offline, N = 10, K = 3), full / half / quarter map\n")
+    print(table(rows, ["score", *[f"{q} {m}" for q in ("base", "mixed", "double-rate") for m in ("full", "half", "quarter")]]))
 
 
 def tab_speed(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
@@ -331,7 +359,7 @@ def tab_size(qs: dict[str, Drive], refs: dict[str, Drive], sizes: list[int]) -> 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-seq-bench"))
-    ap.add_argument("--tables", nargs="+", default=["quality", "maps", "coords", "sweep", "speed", "size"])
+    ap.add_argument("--tables", nargs="+", default=["quality", "maps", "coords", "design", "sweep", "speed", "size"])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000])
     a = ap.parse_args()
     qs, refs = load(a.cache)
@@ -340,6 +368,7 @@ def main() -> int:
         "quality": lambda: tab_quality(qs, refs), "maps": lambda: tab_maps(qs, refs),
         "coords": lambda: tab_coords(qs, refs), "sweep": lambda: tab_sweep(qs, refs),
         "speed": lambda: tab_speed(qs, refs), "size": lambda: tab_size(qs, refs, a.sizes),
+        "design": lambda: tab_design(qs, refs),
     }
     for t in a.tables:
         tabs[t]()

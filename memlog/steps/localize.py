@@ -45,12 +45,12 @@ from memlog.descriptors.sequence import SequenceConfig, has_positions, match_tab
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import WhitenedDescriber
 from memlog.errors import ConfigError, DescriptorError
-from memlog.progress import info
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow
 from memlog.io.records import ReadReport
 from memlog.outputs.descriptor_table import read_cached, read_descriptors, stored_dtype, write_descriptors
 from memlog.outputs.matches import write_match_log, write_matches
+from memlog.progress import info
 
 __all__ = ["localize", "LocalizeConfig", "LocalizeResult", "describer_for"]
 
