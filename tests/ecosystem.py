@@ -122,6 +122,16 @@ def record_of_scores(msg: dict[str, Any], encoding: str) -> dict[str, Any]:
     return r
 
 
+def record_of_match(msg: dict[str, Any], encoding: str) -> dict[str, Any]:
+    """A decoded ``Match`` message (plain data) as memlog's record: NaN (ROS) is null."""
+    r = dict(msg)
+    if encoding in ("cdr", "ros1"):
+        for k in ("sequence_score", "speed"):
+            if math.isnan(r[k]):
+                r[k] = None
+    return r
+
+
 def anyreader_read_all(paths: list[Path]) -> dict[str, int]:
     """Open ``paths`` with rosbags' AnyReader, deserialize every message; messages per topic."""
     from rosbags.highlevel import AnyReader

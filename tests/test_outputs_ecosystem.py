@@ -42,7 +42,7 @@ from memlog.steps.map import MapConfig, make_map
 from memlog.steps.score import score
 from tests.conftest import FIXTURE_LOGS, FIXTURES
 from tests.ecosystem import (ENCODINGS, FAMILY, anyreader_opens, anyreader_read_all, copy_topics, decoded, plain,
-                             record_of_scores, ros1_bag_of)
+                             record_of_match, record_of_scores, ros1_bag_of)
 
 T = TypeVar("T")
 ROS_LOGS = [n for n in FIXTURE_LOGS if FAMILY[n] in ("ros1", "ros2")]
@@ -335,8 +335,10 @@ RECORDS = [
 ]
 MATCHES = [
     {"timestamp": {"sec": 1, "nsec": 2}, "frame_index": 3, "confidence": 0.875,
-     "matches": [{"topic": "/map", "frame_index": 4, "similarity": 0.875}, {"topic": "/m2", "frame_index": 0, "similarity": -0.5}]},
-    {"timestamp": {"sec": 0, "nsec": 0}, "frame_index": 0, "confidence": 0.0, "matches": []},
+     "matches": [{"topic": "/map", "frame_index": 4, "similarity": 0.875}, {"topic": "/m2", "frame_index": 0, "similarity": -0.5}],
+     "matched_by": "sequence", "sequence_score": 12.5, "speed": 0.75},
+    {"timestamp": {"sec": 0, "nsec": 0}, "frame_index": 0, "confidence": 0.0, "matches": [],
+     "matched_by": "single frame", "sequence_score": None, "speed": None},
 ]
 
 
@@ -365,7 +367,7 @@ def test_records_survive_every_family(family: str, tmp_path: Path) -> None:
     for _s, ch, _m, msg in decoded(path, family):
         ext.setdefault(ch.topic, []).append(plain(msg))
     assert [record_of_scores(x, ENCODINGS[family][0]) for x in ext["/c/memlog/scores"]] == RECORDS
-    assert ext["/c/memlog/match"] == MATCHES
+    assert [record_of_match(x, ENCODINGS[family][0]) for x in ext["/c/memlog/match"]] == MATCHES
     img_msg = ext["/c/memlog/maps/entropy"][0]
     assert img_msg["format"] == "png"
     if family in ("ros1", "ros2"):

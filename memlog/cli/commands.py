@@ -28,9 +28,11 @@ from memlog.cli.flags import (
     nonneg_float,
     nonneg_int,
     positive_int,
+    positive_float,
     ray_address,
     score_config,
     selection_config,
+    speed_range,
 )
 from memlog.configfile import build
 from memlog.errors import ConfigError
@@ -439,8 +441,55 @@ def add_localize(sub: Any) -> None:
     p.add_argument("--time-search", action="store_true",
                    help="also time the exact search of the whole map separately (repeated, batched and one query "
                         "at a time)")
+    g = p.add_argument_group("sequences (on by default: the query is matched as a drive)")
+    g.add_argument("--sequence", type=nonneg_int, metavar="N",
+                   help="match each query frame together with the N frames before and after it (default 10); 0: "
+                        "single frames. A single image or unordered frames are matched frame by frame")
+    g.add_argument("--causal", action="store_true",
+                   help="use only past frames: the N frames before each query frame and the frame itself (a robot "
+                        "localizing live)")
+    g.add_argument("--speeds", type=speed_range, metavar="MIN:MAX",
+                   help="relative speeds searched, map coordinate per query coordinate (default 0:3; positions: "
+                        "0.8:1.25)")
+    g.add_argument("--sequence-k", type=positive_int, metavar="K",
+                   help="candidates per query frame from the single-frame search that vote for places (default 3)")
+    g.add_argument("--coordinate", choices=["auto", "frames", "time", "positions"],
+                   help="what sequences follow: frame indices, stamps, or distance along both logs' positions "
+                        "(default auto: positions when both logs have them, else frames)")
+    g.add_argument("--sequence-path", choices=["constant", "dp"],
+                   help="constant speed over the window (default), or dp: a path whose speed may change inside it")
+    g.add_argument("--max-gap", type=positive_float, metavar="S",
+                   help="a gap of more than S seconds between query stamps starts a new run (sequences never cross "
+                        "one; default: 10 x the median frame interval)")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=cmd_localize)
+
+
+_SEQUENCE_FLAGS = {"causal": "--causal", "speeds": "--speeds", "sequence_k": "--sequence-k",
+                   "coordinate": "--coordinate", "sequence_path": "--sequence-path", "max_gap": "--max-gap"}
+
+
+def sequence_config(args: argparse.Namespace) -> Any:
+    """The SequenceConfig of the localize flags; flags that need a sequence with ``--sequence 0``
+    are a usage error."""
+    from memlog.descriptors.sequence import SequenceConfig
+
+    given = [flag for dest, flag in _SEQUENCE_FLAGS.items() if getattr(args, dest, None) not in (None, False)]
+    if args.sequence == 0 and given:
+        raise ConfigError(f"{', '.join(given)} set(s) how sequences are matched, but --sequence 0 matches single "
+                          "frames")
+    kw: dict[str, Any] = {}
+    for key, dest in (("length", "sequence"), ("speeds", "speeds"), ("candidates", "sequence_k"),
+                      ("coordinate", "coordinate"), ("path", "sequence_path"), ("max_gap_s", "max_gap")):
+        v = getattr(args, dest, None)
+        if v is not None:
+            kw[key] = v
+    if args.causal:
+        kw["causal"] = True
+    try:
+        return SequenceConfig(**kw)
+    except ConfigError as exc:
+        raise ConfigError(f"--sequence: {exc}") from None
 
 
 def cmd_localize(args: argparse.Namespace) -> int:
@@ -454,13 +503,17 @@ def cmd_localize(args: argparse.Namespace) -> int:
         search = SearchConfig(args.search, args.nlist, args.nprobe)
     except ConfigError as exc:
         raise ConfigError(f"--search {args.search}: {exc}") from None
+    seq = sequence_config(args)
     cfg = LocalizeConfig(k=args.k, window=frame_window(args, args.query), search=search,
-                         time_search=args.time_search)
+                         time_search=args.time_search, sequence=seq)
     res = localize(args.map, args.query, args.output, cfg, annotate=args.annotate,
                    query_descriptors=args.query_descriptors)
     t = res.timing_map.seconds_per_query
+    sq = res.sequence
+    how = (f"{sq['mode']} sequences of {sq['length']} frames, {sq['coordinate']}, speeds "
+           f"{sq['speeds'][0]:g}..{sq['speeds'][1]:g}" if sq.get("sequence_queries") else "single frames")
     info(f"{res.n_queries} query frames matched against {res.n_map} map frames "
-         f"({res.search['method']} search); {t * 1e3:.3f} ms per query")
+         f"({res.search['method']} search; {how}); {t * 1e3:.3f} ms per query")
     for name, timing in (res.search_timing or {}).items():
         info(f"exact search, {name}: {timing.seconds_per_query * 1e3:.3f} ms per query "
              f"(median of {timing.repeats}, {timing.n_queries} queries)")

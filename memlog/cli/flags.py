@@ -19,7 +19,7 @@ from memlog.selection.config import SelectionConfig
 
 __all__ = [
     "unit_interval", "fraction", "positive_float", "nonneg_float", "positive_int", "nonneg_int", "int_range",
-    "cosine_distance", "log_time", "ray_address", "add_config_flags", "add_window_flags", "add_selection_flags",
+    "cosine_distance", "speed_range", "log_time", "ray_address", "add_config_flags", "add_window_flags", "add_selection_flags",
     "score_config", "selection_config", "frame_window", "file_section", "setting_names_to_flags",
 ]
 
@@ -110,6 +110,17 @@ def int_range(low: int, high: int) -> Callable[[str], int]:
         return v
 
     return check
+
+
+def speed_range(text: str) -> tuple[float, float]:
+    """``MIN:MAX`` relative speeds, 0 <= MIN <= MAX (one number: that speed only)."""
+    parts = text.split(":")
+    if len(parts) > 2:
+        raise argparse.ArgumentTypeError(f"expected MIN:MAX (e.g. 0:3), got {text!r}")
+    lo, hi = (_number(parts[0]), _number(parts[-1]))
+    if lo < 0 or hi < lo:
+        raise argparse.ArgumentTypeError(f"must be MIN:MAX with 0 <= MIN <= MAX, got {text!r}")
+    return lo, hi
 
 
 def cosine_distance(text: str) -> float:

@@ -93,7 +93,8 @@ def canonical_match(rec: Mapping[str, Any]) -> dict[str, Any]:
     return {"timestamp": rec["timestamp"], "frame_index": rec["frame_index"],
             "matches": [{"topic": m["topic"], "frame_index": m["frame_index"], "similarity": m["similarity"]}
                         for m in rec["matches"]],
-            "confidence": rec["confidence"]}
+            "confidence": rec["confidence"], "matched_by": rec.get("matched_by") or "single frame",
+            "sequence_score": rec.get("sequence_score"), "speed": rec.get("speed")}
 
 
 def _scores_to_flat(rec: Mapping[str, Any]) -> dict[str, Any]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,7 @@ def write_matches(
     ref_ids: npt.ArrayLike | None = None,
     query_columns: Mapping[str, npt.ArrayLike] | None = None,
     ref_columns: Mapping[str, npt.ArrayLike] | None = None,
+    rank_columns: Mapping[str, npt.ArrayLike] | None = None,
     metadata: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write matches in long form (one row per query and rank) to ``.parquet`` or ``.csv``.
@@ -40,8 +41,10 @@ def write_matches(
     ``query_ids``/``ref_ids`` (e.g. frame indices, indexed by row) also ``query_id`` and
     ``ref_id``; ``query_columns`` adds per-query values (e.g. ``correct``) to each of its
     rows; ``ref_columns`` (indexed by reference row, e.g. ``ref_topic``) adds the matched frame's
-    values. ``metadata`` (JSON-able) goes into the Parquet schema metadata as ``memlog.<key>``
-    (Parquet only). Empty slots (index -1) are not written. Atomic (temporary file, then rename).
+    values; ``rank_columns`` (``[Q, k]`` like ``indices``, e.g. a sequence score) adds the value
+    of each (query, rank), NaN written as null. ``metadata`` (JSON-able) goes into the Parquet
+    schema metadata as ``memlog.<key>`` (Parquet only). Empty slots (index -1) are not written.
+    Atomic (temporary file, then rename).
     """
     idx = np.asarray(indices, dtype=np.int64)
     sim = np.asarray(similarities, dtype=np.float32)
@@ -76,6 +79,13 @@ def write_matches(
         if name in cols:
             raise DescriptorError(f"reference column {name} clashes with a standard column")
         cols[name] = pa.array(v[ref])
+    for name, values in (rank_columns or {}).items():
+        v = np.asarray(values)
+        if v.shape != idx.shape:
+            raise DescriptorError(f"rank column {name} must be {idx.shape} like the indices, got shape {v.shape}")
+        if name in cols:
+            raise DescriptorError(f"rank column {name} clashes with a standard column")
+        cols[name] = pa.array(v[qrow, rank], from_pandas=True)
     for name, values in (query_columns or {}).items():
         v = np.asarray(values)
         if v.shape != (idx.shape[0],):
@@ -102,10 +112,20 @@ def write_matches(
     return target
 
 
+def _finite(values: np.ndarray | None, row: int) -> float | None:
+    if values is None or not np.isfinite(values[row]):
+        return None
+    return float(values[row])
+
+
 def write_match_log(query_log: str | os.PathLike[str], path: str | os.PathLike[str], qt: DescriptorTable,
-                    ref: DescriptorTable, idx: np.ndarray, sims: np.ndarray, best: np.ndarray) -> Path:
+                    ref: DescriptorTable, idx: np.ndarray, sims: np.ndarray, best: np.ndarray, *,
+                    matched_by: Sequence[str] | None = None, sequence_score: np.ndarray | None = None,
+                    speed: np.ndarray | None = None) -> Path:
     """Copy the query log and add ``T/memlog/match`` (``memlog.Match``, in the query's encoding
-    family: :mod:`memlog.outputs.channels`) per described frame."""
+    family: :mod:`memlog.outputs.channels`) per described frame: the matches with their
+    similarities, the confidence ``best``, how the frame was matched (``matched_by``, default
+    "single frame"), the best place's sequence score and the path's speed (null: none)."""
     by_frame = {(t, int(i)): r for r, (t, i) in enumerate(zip(qt.topic, qt.frame_index))}
     topics = sorted(set(qt.topic))
     with open_log(query_log) as reader, McapLogWriter(path, profile=reader.profile) as w:
@@ -118,5 +138,7 @@ def write_match_log(query_log: str | os.PathLike[str], path: str | os.PathLike[s
             sec, nsec = divmod(int(qt.stamp_ns[r]), 1_000_000_000)
             out.write(chans[t], int(qt.log_time_ns[r]), {
                 "timestamp": {"sec": sec, "nsec": nsec}, "frame_index": i, "matches": ms, "confidence": float(best[r]),
+                "matched_by": matched_by[r] if matched_by is not None else "single frame",
+                "sequence_score": _finite(sequence_score, r), "speed": _finite(speed, r),
             })
     return Path(path)

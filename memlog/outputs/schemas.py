@@ -110,7 +110,14 @@ MATCH: dict[str, Any] = {
                 },
             },
         },
-        "confidence": {"type": "number"},
+        "confidence": {"type": "number", "description": "the sequence margin (best place's sequence score minus "
+                       "the next place's) when matched as a sequence, else the similarity of the best match"},
+        "matched_by": {"type": "string", "description": "sequence, causal sequence or single frame"},
+        "sequence_score": {"type": ["number", "null"], "description": "sequence score of the best place (mean "
+                           "contrast-normalised similarity along its path, times the square root of the pairs); "
+                           "null for a single frame"},
+        "speed": {"type": ["number", "null"], "description": "relative speed of the best path (map coordinate per "
+                  "query coordinate); null for a single frame"},
     },
     "required": ["timestamp", "frame_index", "matches", "confidence"],
 }
@@ -214,7 +221,12 @@ MESSAGES: dict[str, Message] = {m.name: m for m in (
         Field("timestamp", "time", "header stamp of the query frame"),
         Field("frame_index", "uint64", "position of the query frame on its topic"),
         Field("matches", "MatchCandidate", "best map frames, best first", array=True),
-        Field("confidence", "float64", "similarity of the best match"),
+        Field("confidence", "float64", "the sequence margin (best place's sequence score minus the next place's) "
+              "when matched as a sequence, else the similarity of the best match"),
+        Field("matched_by", "string", "sequence, causal sequence or single frame"),
+        Field("sequence_score", "float64", "sequence score of the best place", nullable=True),
+        Field("speed", "float64", "relative speed of the best path (map coordinate per query coordinate)",
+              nullable=True),
     )),
 )}
 

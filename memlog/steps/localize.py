@@ -8,8 +8,18 @@ whatever the map was built with), and a whitened map's transform, stored in the 
 applied to every query frame; cached query descriptors made without it (or with another) are
 refused and described again. All query frames are matched together, in blocks
 (:func:`memlog.descriptors.search.match`), or through an approximate FAISS index for big maps
-(:mod:`memlog.descriptors.approx`; ``search`` picks, ``auto`` by map size and query count). The
-search is timed as it runs (``timing_map``: wall time per query); ``time_search`` adds a separate,
+(:mod:`memlog.descriptors.approx`; ``search`` picks, ``auto`` by map size and query count).
+
+**Sequences (on by default).** The query is a drive, so each frame is matched together with its
+neighbours (``sequence``: :class:`memlog.descriptors.sequence.SequenceConfig`, ``length`` frames
+before and after, or before only when ``causal``): the single-frame search gives each frame's
+best candidates, which vote for places along the map; the best places are scored exactly along
+a path at the best relative speed, and ranked by that score. The match table then gives, per
+rank, a distinct place (``sequence_score``), and the confidence is the margin of the best place
+over the next. A query that is a single image or a log of unordered frames (runs of fewer than
+``length + 1`` frames with increasing stamps) is matched frame by frame, and the table
+(``matched_by``), the metadata (``sequence.fallback``) and the result say so.
+``sequence.length = 0`` is single-frame localization. The search is timed as it runs (``timing_map``: wall time per query); ``time_search`` adds a separate,
 repeated timing (batched and one query at a time) for benchmarks. Query descriptors can be cached
 (``query_descriptors``): the cache is reused only when it was made from the same query log (path,
 size, modification time), window and descriptor, and the run says whether it was reused or refused.
@@ -30,7 +40,8 @@ from memlog.descriptors.approx import IVFIndex, SearchConfig, choose
 from memlog.descriptors.base import Describer, check_compatible
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import make_describer
-from memlog.descriptors.search import Database, QueryTiming, confidence, match, time_per_query
+from memlog.descriptors.search import Database, QueryTiming, confidence, time_per_query
+from memlog.descriptors.sequence import SequenceConfig, has_positions, match_tables
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import WhitenedDescriber
 from memlog.errors import ConfigError, DescriptorError
@@ -39,24 +50,29 @@ from memlog.io.base import FrameWindow
 from memlog.io.records import ReadReport
 from memlog.outputs.descriptor_table import read_cached, read_descriptors, stored_dtype, write_descriptors
 from memlog.outputs.matches import write_match_log, write_matches
+from memlog.progress import info
 
 __all__ = ["localize", "LocalizeConfig", "LocalizeResult", "describer_for"]
 
 
 @dataclass(frozen=True)
 class LocalizeConfig:
-    """``k`` reference frames per query; which query frames (``window``); how to search the map
-    (``search``); ``time_search``: also time the search separately (repeated; for benchmarks)."""
+    """``k`` reference frames (places, with sequences) per query; which query frames (``window``);
+    how to search the map (``search``); how to match sequences (``sequence``; ``length`` 0:
+    single frames); ``time_search``: also time the search separately (repeated; for benchmarks)."""
 
     k: int = 5
     window: FrameWindow = FrameWindow()
     search: SearchConfig = SearchConfig()
     time_search: bool = False
+    sequence: SequenceConfig = SequenceConfig()
 
     def __post_init__(self) -> None:
         check_ints(self, {"k": 1})
         if not isinstance(self.search, SearchConfig):
             raise ConfigError(f"search must be a SearchConfig, got {self.search!r}")
+        if not isinstance(self.sequence, SequenceConfig):
+            raise ConfigError(f"sequence must be a SequenceConfig, got {self.sequence!r}")
 
 
 def describer_for(table: DescriptorTable) -> Describer:
@@ -86,6 +102,7 @@ class LocalizeResult:
     reports: list[ReadReport] = field(default_factory=list)
     search: dict[str, Any] = field(default_factory=dict)
     search_timing: dict[str, QueryTiming] | None = None
+    sequence: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -95,6 +112,7 @@ class LocalizeResult:
             "search_timing": {k: v.to_dict() for k, v in self.search_timing.items()} if self.search_timing else None,
             "annotated": str(self.annotated) if self.annotated else None,
             "query_descriptors_reused": self.query_descriptors_reused,
+            "sequence": self.sequence,
         }
 
 
@@ -120,6 +138,9 @@ def localize(
     ref = read_descriptors(map_descriptors)
     if len(ref) == 0:
         raise DescriptorError(f"{map_descriptors}: the map has no descriptors")
+    if cfg.sequence.enabled and cfg.sequence.coordinate == "positions" and not has_positions(ref):
+        raise ConfigError(f"--coordinate positions: the map {map_descriptors} has no position for every frame "
+                          "(use --coordinate frames or time)")
     qt = read_cached(query_descriptors, query_log, ref.meta, cfg.window) if query_descriptors else None
     reused = qt is not None
     reports: list[ReadReport] = []
@@ -134,27 +155,37 @@ def localize(
     search: dict[str, Any] = {"method": choose(cfg.search, len(ref), len(qt)), "asked": cfg.search.method,
                               "map_dtype": stored_dtype(map_descriptors)}
     t0 = time.perf_counter()
+    index = None
     if search["method"] == "ivf":
         index = IVFIndex(db, cfg.search.nlist)
         search["nlist"] = index.nlist
-        search["nprobe"], search["rerank"] = index.settings(k, cfg.search.nprobe, cfg.search.rerank)
+        n_cand = max(k, cfg.sequence.candidates + 1) if cfg.sequence.enabled else k
+        search["nprobe"], search["rerank"] = index.settings(n_cand, cfg.search.nprobe, cfg.search.rerank)
         search["build_seconds"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        idx, sims = index.search(qt.descriptors, k, cfg.search.nprobe, cfg.search.rerank)
-    else:
-        idx, sims = match(qt.descriptors, db, k=k)
+    res = match_tables(qt, ref, cfg.sequence, k=k, index=index,
+                       nprobe=cfg.search.nprobe, rerank=cfg.search.rerank)
+    idx, sims = res.indices, res.similarities
     seconds = (time.perf_counter() - t0) / max(1, len(qt))
     timing_map = QueryTiming(seconds, seconds, len(ref), ref.meta.dim, len(qt), 1)
     conf = confidence(sims)
+    how = np.where(res.sequence, "causal sequence" if cfg.sequence.causal else "sequence", "single frame")
+    seq_scores = np.where(res.sequence[:, None] & (idx >= 0), res.scores, np.nan)
+    sequence = _sequence_record(res.info, cfg.sequence)
     out = write_matches(
         output, idx, sims, query_ids=qt.frame_index, ref_ids=ref.frame_index,
         query_columns={"query_topic": np.array(qt.topic), "query_log_time_ns": qt.log_time_ns,
-                       "confidence": conf.best, "margin": conf.margin, "ratio": conf.ratio},
+                       "confidence": res.confidence, "margin": np.where(res.sequence, res.margin, conf.margin),
+                       "ratio": conf.ratio, "matched_by": how, "sequence_speed": res.speed,
+                       "sequence_window": res.window},
         ref_columns={"ref_topic": np.array(ref.topic), "ref_log_time_ns": ref.log_time_ns},
+        rank_columns={"sequence_score": seq_scores},
         metadata={"map": str(Path(map_descriptors).resolve()), "query_log": str(Path(query_log).resolve()),
                   "descriptor": ref.meta.to_dict(), "k": cfg.k, "window": qt.extra.get("window"),
-                  "search": search},
+                  "search": search, "sequence": sequence},
     )
+    if sequence["fallback"]:
+        info(sequence["fallback"])
     search_timing = None
     if cfg.time_search and len(qt):
         # the exact search of the whole map, repeated: batched as above, and one query at a time
@@ -162,7 +193,21 @@ def localize(
                          "single": time_per_query(qt.descriptors, db, repeats=1, k=k, max_queries=10, batched=False)}
     annotated = None
     if annotate is not None:
-        annotated = write_match_log(query_log, annotate, qt, ref, idx, sims, conf.best)
+        annotated = write_match_log(query_log, annotate, qt, ref, idx, sims, res.confidence,
+                                    matched_by=[str(h) for h in how], sequence_score=seq_scores[:, 0],
+                                    speed=res.speed)
     return LocalizeResult(out, len(qt), len(ref), cfg.k, timing_map, annotated, reused, reports, search,
-                          search_timing)
+                          search_timing, sequence)
+
+
+def _sequence_record(found: dict[str, Any], cfg: SequenceConfig) -> dict[str, Any]:
+    """What the outputs record about sequence matching: the settings asked for, what was used
+    (coordinate, speeds searched, the reference's frame spacing) and the fallback, if any."""
+    keys = ("coordinate", "coordinate_note", "speeds", "speed_step", "n_speeds", "unit", "runs", "max_gap_s",
+            "sequence_queries", "single_queries", "fallback")
+    out = {"asked": cfg.to_dict(), "length": cfg.length, "mode": "causal" if cfg.causal else "offline",
+           "candidates": cfg.candidates, "path": cfg.path, **{k: found.get(k) for k in keys}}
+    if not cfg.enabled:
+        out["mode"] = "single frames"
+    return out
 

@@ -1,0 +1,869 @@
+"""Sequence matching: localize a drive against a map as sequences of frames, not frame by frame.
+
+Both the map and the query are drives, so a query frame is matched together with its neighbours:
+the frames ``t`` of a window around query frame ``i`` (``length`` frames before and after, or,
+``causal``, the ``length`` frames before and ``i`` itself) are assumed to follow a path along
+the reference drive, and the path whose frames are most similar to the window wins (SeqSLAM,
+Milford & Wyeth 2012). What is matched is a *coordinate* along each drive (``coordinate``):
+
+* ``frames``: the frame index on the topic (the map's rows carry their frame index in the
+  reference drive, so a sparse map keeps the reference drive's numbering);
+* ``time``: the header stamp, in seconds (a map recorded at another frame rate has the same
+  speed 1);
+* ``positions``: the distance travelled along the drive's positions, in metres (a stop adds
+  nothing, so the speed is about 1 whatever the vehicle did);
+* ``auto``: ``positions`` when both drives have positions for every frame, else ``frames``.
+
+**The score of a path.** Every similarity is contrast-normalised per query frame:
+``z = (s - mean) / std`` with the mean and standard deviation of the frame's similarities to a
+fixed sample of :data:`STAT_SAMPLE` map frames spread evenly over the map (so no full row of
+similarities is needed, and the value does not depend on which other queries are matched). A
+path predicts a reference coordinate for each window frame, and each *map frame along the path*
+is compared with the query frame(s) predicted nearest to it (all of them on a tie: a stop). On
+a full map at the right speed that is every window frame against its own place; on a half or
+quarter map (gaps: the map holds only the kept frames, with their frame indices in the reference
+drive) each kept frame meets the query frame aligned with it, never the frames that fall in a gap
+only because no kept frame is nearer (on Nordland a frame two places away is another view: taking
+every window frame, quarter-map R@1 was 0.20, with this pairing 0.39). Predictions beyond the
+map's ends meet nothing. The path's score is ``sum(z) / sqrt(pairs)``: standard normal when
+nothing matches, whatever the number of pairs, so paths with fewer pairs do not win by noise
+(the plain mean lost 0.05 R@1 on half maps). Two path models (``path``):
+
+* ``constant`` (SeqSLAM): a straight line, coordinate ``x + v (c_t - c_i)`` with the relative
+  speed ``v`` (map coordinate per query coordinate) searched over ``speeds`` in steps of
+  ``speed_step`` (default: the step that moves the window's far end by one reference frame);
+* ``dp``: a monotone path found by dynamic programming on a grid of one reference frame, each
+  step between consecutive window frames moving ``round(vmin d / u)`` to ``round(vmax d / u)``
+  grid units (``d``: the query's coordinate step, ``u``: the reference's frame spacing), so the
+  speed may change inside the window (a stop half-way through it). Each window frame is scored
+  against the map frame nearest its grid position. Measured on the Nordland variants it loses to
+  ``constant`` (its freedom fits wrong places too: AUC 0.42 against 0.65 on the base drive), so
+  ``constant`` is the default.
+
+**Any map size.** Only hypotheses supported by the single-frame search are considered: the top
+``candidates`` map frames of every query frame (exact search, or an approximate FAISS index)
+vote, for every speed, for the place they imply for the window's centre, weighted by how much
+they stand out of that frame's next candidate (``z`` minus the ``z`` of candidate ``K + 1``);
+votes for a centre beyond the map's ends are dropped. The :data:`EXACT_PLACES` best-voted places
+(distinct places: non-maximum suppression with ``exclude``) compete for the best match: each is
+scored exactly with the chosen path model at its voted speed and :data:`RESCORE_SPEEDS` steps
+either side, with its centre refined in steps of half a reference frame within half the map's
+spacing (a sparse map's place, or a query frame of a map at a lower frame rate, may lie between
+map frames: against a map at half the frame rate R@1 went from 0.52 to 0.62), and reported as the
+map frame nearest its centre. More places competing gave more false maxima (R@1 0.72 with 3, 0.69 with 12);
+ranks beyond come from the next voted places. The cost per query does not depend on the map's
+size beyond the candidate search.
+
+**Confidence.** The margin: the best place's score minus the second best's, the second best
+being outside ``exclude`` reference frames of the best (a different place, for ``exclude`` the
+truth window's half-width). As a confidence it beat the score itself (AUC-PR 0.65 against 0.48
+on Nordland).
+
+**Runs and the fallback.** A query is cut into runs of rows whose coordinates do not decrease
+(and, for logs, whose stamps increase with gaps below a limit: :func:`drive_runs`); windows never
+cross a run boundary and are cut at its ends. Offline, a run shorter than ``length + 1`` frames
+(a single image, a log of unordered frames) is matched frame by frame; causal, a frame is matched
+as a sequence once ``length`` frames of its run precede it (decided from the past alone), so the
+first ``length`` frames of every run are single frames. The result says so
+(``SequenceMatch.sequence``, ``info["fallback"]``). ``length = 0`` is single-frame matching.
+
+**Batching.** Candidates come from :func:`memlog.descriptors.search.match` (independent of its
+blocking), the statistics and the final scores are computed per query from its own window, and
+the votes are summed in an order fixed by the query: matching the queries in blocks of any size
+(``block``) gives identical results.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from memlog.configfile import check_ints
+from memlog.descriptors.search import Database, _as_2d, _rescore, _row_norms, match
+from memlog.descriptors.table import POSITION_COLUMNS, DescriptorTable
+from memlog.errors import ConfigError, DescriptorError
+from memlog.io.positions import geo_origin, geo_to_local
+
+if TYPE_CHECKING:
+    from memlog.descriptors.approx import IVFIndex
+
+__all__ = [
+    "SequenceConfig", "SequenceMatch", "match_sequences", "match_tables", "drive_coordinates", "drive_runs",
+    "resolve_coordinate", "has_positions", "reference_unit", "COORDINATES", "PATHS", "STAT_SAMPLE",
+]
+
+log = logging.getLogger(__name__)
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+
+COORDINATES = ("auto", "frames", "time", "positions")
+PATHS = ("constant", "dp")
+DEFAULT_SPEEDS = (0.0, 3.0)  # frames and time: from standing still to three times the map's speed
+POSITION_SPEEDS = (0.8, 1.25)  # positions: metres against metres; the range allows for odometry scale
+STAT_SAMPLE = 256  # map frames the contrast normalisation's statistics are taken from
+MAX_SPEEDS = 128  # at most this many speeds are searched (speed_step is raised to fit)
+EXACT_PLACES = 3  # the best-voted places that compete for the best match (more: more false maxima)
+TOP_VOTES = 64  # best-voted places per query looked at by the non-maximum suppression
+CENTRE_STEPS = 2  # centres are tried every half reference frame (a map sparser than the query: between its frames)
+RESCORE_SPEEDS = 3  # exact scores are taken at the voted speed and this many steps either side
+PAIRING = "mutual"  # "mutual": map frames along the path meet their nearest query frames; "all": every frame
+SCORE_NORM = "sqrt"  # "sqrt": sum of z over sqrt(pairs), N(0, 1) without a match; "mean": the mean z
+PAIR_ELEMS = 1 << 21  # float32 elements per chunk of pair products (8 MiB)
+GAP_FACTOR = 10.0  # default run boundary: a stamp gap above this many median frame intervals
+
+
+@dataclass(frozen=True)
+class SequenceConfig:
+    """How query frames are matched as sequences (see the module doc).
+
+    ``length``: frames before (and, unless ``causal``, after) each query frame; 0 = single
+    frames. ``speeds``: (min, max) relative speed, map coordinate per query coordinate (None:
+    0..3 for frames and time, 0.8..1.25 for positions); ``speed_step`` (None: the step that
+    moves the window's far end by one reference frame). ``candidates``: map frames per query
+    frame from the single-frame search that vote (default 3). ``coordinate``: auto | frames | time |
+    positions. ``path``: constant | dp. ``max_gap_s``: a stamp gap above this cuts the query
+    into runs (None: :data:`GAP_FACTOR` times the median frame interval). ``exclude``:
+    half-width, in reference frames, of the window around the best place inside which no
+    second-best place is taken (the margin's "different place"). ``normalize``: contrast
+    normalisation of the similarities. ``block``: query frames per block of votes (speed and
+    memory only; never the result).
+    """
+
+    length: int = 10
+    causal: bool = False
+    speeds: tuple[float, float] | None = None
+    speed_step: float | None = None
+    candidates: int = 3
+    coordinate: str = "auto"
+    path: str = "constant"
+    max_gap_s: float | None = None
+    exclude: float = 1.0
+    normalize: bool = True
+    block: int = 128
+
+    def __post_init__(self) -> None:
+        check_ints(self, {"length": 0, "candidates": 1, "block": 1})
+        if not isinstance(self.causal, bool) or not isinstance(self.normalize, bool):
+            raise ConfigError("causal and normalize must be true or false")
+        if self.coordinate not in COORDINATES:
+            raise ConfigError(f"coordinate must be one of {', '.join(COORDINATES)}, got {self.coordinate!r}")
+        if self.path not in PATHS:
+            raise ConfigError(f"path must be one of {', '.join(PATHS)}, got {self.path!r}")
+        if self.speeds is not None:
+            sp = tuple(self.speeds)
+            if len(sp) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                                       for v in sp):
+                raise ConfigError(f"speeds must be two finite numbers (min, max), got {self.speeds!r}")
+            if sp[0] < 0 or sp[1] < sp[0]:
+                raise ConfigError(f"speeds must satisfy 0 <= min <= max, got {sp[0]:g}:{sp[1]:g}")
+            object.__setattr__(self, "speeds", (float(sp[0]), float(sp[1])))
+        for name in ("speed_step", "max_gap_s"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
+                                  or v <= 0):
+                raise ConfigError(f"{name} must be a number > 0, got {v!r}")
+        if isinstance(self.exclude, bool) or not isinstance(self.exclude, (int, float)) or not (
+                math.isfinite(self.exclude) and self.exclude >= 0):
+            raise ConfigError(f"exclude must be a number >= 0, got {self.exclude!r}")
+        if self.length == 0 and self.causal:
+            raise ConfigError("causal needs a sequence: length (--sequence) must be >= 1")
+
+    @property
+    def enabled(self) -> bool:
+        """Sequences are matched (``length >= 1``)."""
+        return self.length > 0
+
+    def speed_range(self, coordinate: str) -> tuple[float, float]:
+        """``speeds``, or the default for ``coordinate``."""
+        if self.speeds is not None:
+            return self.speeds
+        return POSITION_SPEEDS if coordinate == "positions" else DEFAULT_SPEEDS
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict."""
+        d = asdict(self)
+        d["speeds"] = list(self.speeds) if self.speeds is not None else None
+        return d
+
+
+@dataclass
+class SequenceMatch:
+    """Best map places of every query frame.
+
+    ``indices`` ``[Q, k]``: rows of the reference (the full reference, also when a mask was
+    given), best first, -1 = none; for a sequence-matched query the ranks are distinct places
+    (outside ``exclude`` of each other), for a single-frame one the ``k`` most similar frames.
+    ``scores`` ``[Q, k]``: the sequence score (mean contrast-normalised similarity along the
+    path), or the similarity for single-frame queries; ``similarities`` ``[Q, k]``: the cosine
+    similarity of the query frame itself to each matched frame. ``margin`` ``[Q]``: best minus
+    second-best score (NaN without a second). ``speed`` ``[Q]``: relative speed of the best path
+    (NaN for single frames). ``window`` ``[Q]``: frames the score was taken over (1 = single
+    frame). ``sequence`` ``[Q]``: matched as a sequence. ``info``: the settings used and the
+    fallback, if any.
+    """
+
+    indices: I64
+    scores: F64
+    similarities: F32
+    margin: F64
+    speed: F64
+    window: I64
+    sequence: BoolArray
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def confidence(self) -> F64:
+        """Per-query confidence: the margin for sequence-matched queries, the best similarity
+        for single-frame ones (as single-frame localization reports it); -inf without a match."""
+        found = self.indices[:, 0] >= 0
+        seq = np.where(np.isnan(self.margin), 0.0, self.margin)
+        out: F64 = np.where(found, np.where(self.sequence, seq, self.scores[:, 0]), -np.inf).astype(np.float64)
+        return out
+
+
+# -- coordinates and runs of descriptor tables -------------------------------------------------------
+def _stamps_s(table: DescriptorTable) -> F64:
+    """Header stamps in seconds from the table's first (log time where a stamp is 0)."""
+    ns = np.where(table.stamp_ns != 0, table.stamp_ns, table.log_time_ns).astype(np.int64)
+    if not len(ns):
+        return np.zeros(0)
+    out: F64 = (ns - ns.min()).astype(np.float64) / 1e9
+    return out
+
+
+def has_positions(table: DescriptorTable) -> bool:
+    """Every frame of ``table`` has a finite position."""
+    cols = [c for cols in POSITION_COLUMNS.values() for c in cols[:2] if c in table.positions]
+    return len(table) > 0 and len(cols) == 2 and all(np.all(np.isfinite(table.positions[c])) for c in cols)
+
+
+def _topic_groups(table: DescriptorTable) -> list[I64]:
+    """Rows of each topic, in table order, topics in order of first appearance."""
+    topics = list(dict.fromkeys(table.topic))
+    arr = np.array(table.topic, dtype=object)
+    return [np.flatnonzero(arr == t).astype(np.int64) for t in topics]
+
+
+def drive_coordinates(table: DescriptorTable, coordinate: str) -> F64:
+    """The along-drive coordinate of every row: ``frames`` (frame index), ``time`` (stamp, s) or
+    ``positions`` (distance travelled along the topic's frames in frame order, m)."""
+    if coordinate == "frames":
+        return table.frame_index.astype(np.float64)
+    if coordinate == "time":
+        return _stamps_s(table)
+    if coordinate != "positions":
+        raise DescriptorError(f"unknown coordinate {coordinate!r}")
+    if not has_positions(table):
+        raise DescriptorError("positions were asked for, but not every frame has a position")
+    if "lat" in table.positions:
+        ll = np.stack([table.positions["lat"], table.positions["lon"]], axis=1)
+        xy = geo_to_local(ll, geo_origin(ll))
+    else:
+        xy = np.stack([table.positions["x"], table.positions["y"]], axis=1)
+    out = np.zeros(len(table))
+    for rows in _topic_groups(table):
+        order = rows[np.argsort(table.frame_index[rows], kind="stable")]
+        step = np.r_[0.0, np.linalg.norm(np.diff(xy[order], axis=0), axis=1)]
+        out[order] = np.cumsum(step)
+    return out
+
+
+def reference_unit(table: DescriptorTable, coord: npt.ArrayLike) -> float:
+    """The reference drive's frame spacing in coordinate units: the median, over consecutive
+    rows of a topic (by frame index), of coordinate step per frame-index step (1 for frames).
+    A sparse map's rows keep their frame index in the drive, so this is the drive's spacing."""
+    c = np.asarray(coord, dtype=np.float64)
+    ratios = []
+    for rows in _topic_groups(table):
+        order = rows[np.argsort(table.frame_index[rows], kind="stable")]
+        df = np.diff(table.frame_index[order]).astype(np.float64)
+        dc = np.diff(c[order])
+        ok = (df > 0) & (dc > 0)
+        ratios.append(dc[ok] / df[ok])
+    r = np.concatenate(ratios) if ratios else np.zeros(0)
+    return float(np.median(r)) if r.size else 1.0
+
+
+def resolve_coordinate(asked: str, query: DescriptorTable, reference: DescriptorTable) -> tuple[str, str | None]:
+    """The coordinate to match in, and a note when ``auto`` could not use positions.
+    ``positions`` asked for without positions in both drives is a :class:`DescriptorError`."""
+    both = has_positions(query) and has_positions(reference)
+    if asked == "positions" and not both:
+        which = [n for n, t in (("the map", reference), ("the query", query)) if not has_positions(t)]
+        raise DescriptorError(f"--coordinate positions: {' and '.join(which)} has no position for every frame "
+                          "(use --coordinate frames or time)")
+    if asked != "auto":
+        return asked, None
+    if both:
+        return "positions", None
+    return "frames", "no positions in both drives: matched in frames"
+
+
+def drive_runs(table: DescriptorTable, max_gap_s: float | None = None) -> tuple[I64, float | None]:
+    """Run label of every row and the gap limit used: a run is a stretch of one topic's frames
+    (in table order) whose stamps increase, each by at most ``max_gap_s`` (None:
+    :data:`GAP_FACTOR` times the topic's median frame interval). Frames whose stamp does not
+    increase (unordered frames, repeated stamps) start a new run."""
+    labels = np.zeros(len(table), dtype=np.int64)
+    stamps = _stamps_s(table)
+    run = 0
+    limit_used: float | None = max_gap_s
+    for rows in _topic_groups(table):
+        dt = np.diff(stamps[rows])
+        pos = dt[dt > 0]
+        limit = max_gap_s if max_gap_s is not None else (GAP_FACTOR * float(np.median(pos)) if pos.size else 0.0)
+        if max_gap_s is None and pos.size:
+            limit_used = limit if limit_used is None else max(limit_used, limit)
+        cut = np.r_[True, (dt <= 0) | (dt > limit)]
+        labels[rows] = run + np.cumsum(cut) - 1
+        run += int(cut.sum())
+    return labels, limit_used
+
+
+# -- the matcher ----------------------------------------------------------------------------------
+def _nearest(sorted_c: F64, x: npt.NDArray[np.float64]) -> I64:
+    """Index of the value of ``sorted_c`` nearest each ``x`` (the lower one on a tie)."""
+    n = sorted_c.shape[0]
+    if n == 1:
+        return np.zeros(np.shape(x), dtype=np.int64)
+    i = np.clip(np.searchsorted(sorted_c, x), 1, n - 1)
+    left = sorted_c[i - 1]
+    right = sorted_c[i]
+    out: I64 = np.where(x - left <= right - x, i - 1, i).astype(np.int64)
+    return out
+
+
+def _stats(q: F32, db: Database, normalize: bool) -> tuple[F64, F64]:
+    """Mean and standard deviation of each query's similarities to a fixed sample of map rows
+    (float64, one query at a time: no dependence on how many queries are given)."""
+    n = q.shape[0]
+    if not normalize or db.rows.shape[0] < 2:
+        return np.zeros(n), np.ones(n)
+    sample = np.unique(np.linspace(0, db.rows.shape[0] - 1, min(STAT_SAMPLE, db.rows.shape[0])).astype(np.int64))
+    s = db.rows[sample].astype(np.float64)
+    mu = np.empty(n)
+    sd = np.empty(n)
+    step = 256
+    for a in range(0, n, step):
+        sims = np.einsum("qd,sd->qs", q[a : a + step].astype(np.float64), s)
+        mu[a : a + step] = sims.mean(axis=1)
+        sd[a : a + step] = sims.std(axis=1)
+    sd = np.where(sd > 1e-12, sd, np.inf)  # a blank frame (all similarities equal) scores 0 everywhere
+    return mu, sd
+
+
+@dataclass
+class _Problem:
+    """Everything the matcher needs, validated: queries, the (masked) map sorted by coordinate."""
+
+    q: F32
+    qc: F64
+    run_lo: I64  # first row of each query's run
+    run_hi: I64  # one past its last row
+    rows: F32  # map descriptors in coordinate order
+    rc: F64  # map coordinates, sorted
+    full_row: I64  # reference row of each sorted map row
+    mu: F64
+    sd: F64
+    unit: float
+    spacing: float  # median spacing of consecutive map coordinates
+    excl: float  # exclusion half-width in coordinate units
+    speeds: F64
+    vmin: float
+    vmax: float
+
+
+def _run_bounds(labels: I64, qc: F64) -> tuple[I64, I64]:
+    """First and one-past-last row of each row's run: consecutive rows with equal labels and
+    non-decreasing coordinates."""
+    n = len(labels)
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    cut = np.r_[True, (labels[1:] != labels[:-1]) | (np.diff(qc) < 0)]
+    starts = np.flatnonzero(cut)
+    run = np.cumsum(cut) - 1
+    ends = np.r_[starts[1:], n]
+    return starts[run].astype(np.int64), ends[run].astype(np.int64)
+
+
+def _speed_grid(cfg: SequenceConfig, vmin: float, vmax: float, unit: float, qstep: float) -> tuple[F64, float]:
+    """The speeds searched and their step (see :class:`SequenceConfig`)."""
+    if vmax <= vmin:
+        return np.array([vmin]), 0.0
+    step = cfg.speed_step or unit / (max(1, cfg.length) * qstep)
+    step = max(step, (vmax - vmin) / (MAX_SPEEDS - 1))
+    n = math.floor((vmax - vmin) / step + 1e-9) + 1
+    v = vmin + step * np.arange(n)
+    if v[-1] < vmax - 1e-9:
+        v = np.r_[v, vmax]
+    return v.astype(np.float64), float(step)
+
+
+def _offsets(cfg: SequenceConfig) -> I64:
+    n = cfg.length
+    return np.arange(-n, 1 if cfg.causal else n + 1, dtype=np.int64)
+
+
+def _window(p: _Problem, i: int, offs: I64) -> tuple[I64, F64]:
+    """Rows of query ``i``'s window (offset order) and their coordinate minus ``i``'s."""
+    t = i + offs
+    t = t[(t >= p.run_lo[i]) & (t < p.run_hi[i])]
+    return t, p.qc[t] - p.qc[i]
+
+
+def _pair_dots(q: F32, rows: F32, t: I64, r: I64) -> F64:
+    """``q[t] . rows[r]`` pair by pair (float32 products summed per pair: the value of a pair does
+    not depend on which other pairs are computed with it), in chunks of bounded memory."""
+    out = np.empty(len(t), dtype=np.float64)
+    step = max(1, PAIR_ELEMS // max(1, q.shape[1]))
+    for a in range(0, len(t), step):
+        out[a : a + step] = np.einsum("ij,ij->i", q[t[a : a + step]], rows[r[a : a + step]])
+    return out
+
+
+def _z_of_pairs(p: _Problem, t: npt.NDArray[np.int64], r: npt.NDArray[np.int64]) -> F64:
+    """Contrast-normalised similarity of query rows ``t`` and sorted map rows ``r`` (any equal
+    shapes), each distinct pair computed once."""
+    m = p.rc.shape[0]
+    key = t.astype(np.int64).ravel() * m + r.astype(np.int64).ravel()
+    uk, inv = np.unique(key, return_inverse=True)
+    ut, ur = uk // m, uk % m
+    z = (_pair_dots(p.q, p.rows, ut, ur) - p.mu[ut]) / p.sd[ut]
+    out: F64 = z[inv].reshape(t.shape)
+    return out
+
+
+def _on_map(p: _Problem, x: npt.NDArray[np.float64]) -> BoolArray:
+    """Coordinates within the map's extent (half a frame spacing beyond its first and last frame)."""
+    half = 0.5 * p.spacing
+    out: BoolArray = (x >= p.rc[0] - half) & (x <= p.rc[-1] + half)
+    return out
+
+
+def _votes(p: _Problem, centres: I64, offs: I64, cand: I64, gain: F64, n_places: int) -> tuple[I64, I64]:
+    """The best-voted places of each centre: ``(places [B, n_places], speed index [B, n_places])``,
+    sorted map rows (-1 = none), distinct by ``p.excl`` (greedy non-maximum suppression, best
+    first), each with the speed that voted for it most."""
+    b = len(centres)
+    m = p.rc.shape[0]
+    nv = len(p.speeds)
+    places = np.full((b, n_places), -1, dtype=np.int64)
+    speeds = np.zeros((b, n_places), dtype=np.int64)
+    t = centres[:, None] + offs[None, :]
+    valid = (t >= p.run_lo[centres][:, None]) & (t < p.run_hi[centres][:, None])
+    bi, oi = np.nonzero(valid)
+    tv = t[bi, oi]
+    dv = p.qc[tv] - p.qc[centres[bi]]
+    cr = cand[tv]  # [n, K] sorted map rows, -1 = none
+    g = gain[tv]
+    rr, cc = np.nonzero((cr >= 0) & (g > 0))
+    if not len(rr):
+        return places, speeds
+    vs = np.arange(nv, dtype=np.int64)
+    x = p.rc[cr[rr, cc]][:, None] - p.speeds[vs][None, :] * dv[rr][:, None]  # [votes, V]: the centre they imply
+    on_map = _on_map(p, x)  # a centre beyond the map's ends has no frame to vote for (never clipped onto one)
+    key = (bi[rr][:, None].astype(np.int64) * m + _nearest(p.rc, x)) * nv + vs[None, :]
+    key = key[on_map]
+    val = np.broadcast_to(g[rr, cc][:, None], x.shape)[on_map]
+    if not len(key):
+        return places, speeds
+    order = np.argsort(key, kind="stable")
+    key, val = key[order], val[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(key)) + 1]
+    sums = np.add.reduceat(val, starts)  # per (centre, place, speed)
+    place = key[starts] // nv
+    vidx = key[starts] % nv
+    pstarts = np.r_[0, np.flatnonzero(np.diff(place)) + 1]
+    seg = np.repeat(np.arange(len(pstarts)), np.diff(np.r_[pstarts, len(place)]))
+    best = np.maximum.reduceat(sums, pstarts)
+    is_best = np.flatnonzero(sums == best[seg])
+    _u, first_best = np.unique(seg[is_best], return_index=True)
+    best_v = vidx[is_best[first_best]]
+    place = place[pstarts]
+    cb, row = place // m, place % m
+    order = np.lexsort((row, -best, cb))
+    cb, row, best_v = cb[order], row[order], best_v[order]
+    first = np.searchsorted(cb, np.arange(b))
+    last = np.searchsorted(cb, np.arange(b), side="right")
+    for j in range(b):
+        top = range(first[j], min(last[j], first[j] + TOP_VOTES))
+        n = 0
+        for e in top:
+            x0 = p.rc[row[e]]
+            if all(abs(x0 - p.rc[places[j, s]]) > p.excl for s in range(n)):
+                places[j, n] = row[e]
+                speeds[j, n] = best_v[e]
+                n += 1
+                if n == n_places:
+                    break
+    return places, speeds
+
+
+def _windows(p: _Problem, centres: I64, offs: I64) -> tuple[I64, BoolArray, F64]:
+    """Rows ``[B, W]`` of each centre's window (offset order; invalid slots hold the centre),
+    which slots are inside the run, and their coordinate minus the centre's."""
+    t = centres[:, None] + offs[None, :]
+    valid = (t >= p.run_lo[centres][:, None]) & (t < p.run_hi[centres][:, None])
+    t = np.where(valid, t, centres[:, None])
+    return t, valid, p.qc[t] - p.qc[centres][:, None]
+
+
+def _centre_offsets(p: _Problem) -> F64:
+    """Centre positions tried around a voted map frame, in coordinate units: every half
+    reference frame (:data:`CENTRE_STEPS`) within half the map's spacing."""
+    h = math.floor(p.spacing / (2 * p.unit) * CENTRE_STEPS + 1e-9)
+    out: F64 = np.arange(-h, h + 1, dtype=np.float64) * p.unit / CENTRE_STEPS
+    return out
+
+
+def _closest_to_their_frame(p: _Problem, pred: F64, rk: I64, inside: BoolArray) -> BoolArray:
+    """Along the last axis (a window's frames, in order, their predicted coordinates ``pred``
+    non-decreasing): the frames whose prediction is the nearest, among the frames sharing their
+    nearest map frame ``rk``, to that map frame (all of them on a tie: a stop). A map frame
+    along the path is compared with the query frame(s) aligned with it, never with frames
+    that fell into its gap only because the map has no frame nearer."""
+    dist = np.abs(pred - p.rc[rk])
+    inf = np.inf
+    left_same = np.zeros(rk.shape, bool)
+    right_same = np.zeros(rk.shape, bool)
+    left_same[..., 1:] = (rk[..., 1:] == rk[..., :-1]) & inside[..., :-1]
+    right_same[..., :-1] = (rk[..., :-1] == rk[..., 1:]) & inside[..., 1:]
+    dl = np.full(rk.shape, inf)
+    dr = np.full(rk.shape, inf)
+    dl[..., 1:] = dist[..., :-1]
+    dr[..., :-1] = dist[..., 1:]
+    eps = 1e-9 * p.unit
+    out: BoolArray = (~left_same | (dist <= dl + eps)) & (~right_same | (dist <= dr + eps))
+    return out
+
+
+def _score_constant(p: _Problem, centres: I64, offs: I64, places: I64, vbest: I64) -> tuple[F64, F64, F64]:
+    """Exact constant-speed scores ``[B, P]`` of the voted places, with the best centre
+    coordinate and speed of each: the centre is tried at :func:`_centre_offsets` around the map
+    frame, the speed at the voted one and :data:`RESCORE_SPEEDS` steps either side."""
+    t, valid, d = _windows(p, centres, offs)
+    nv = len(p.speeds)
+    sidx = np.clip(vbest[:, :, None] + np.arange(-RESCORE_SPEEDS, RESCORE_SPEEDS + 1)[None, None, :], 0, nv - 1)
+    ok = places >= 0
+    dx = _centre_offsets(p)
+    x = p.rc[np.maximum(places, 0)][:, :, None] + dx[None, None, :]  # [B, P, D]
+    v = p.speeds[sidx]  # [B, P, S]
+    pred = x[:, :, :, None, None] + v[:, :, None, :, None] * d[:, None, None, None, :]  # [B, P, D, S, W]
+    rk = _nearest(p.rc, pred)
+    tq = np.broadcast_to(t[:, None, None, None, :], rk.shape)
+    inside = valid[:, None, None, None, :] & ok[:, :, None, None, None] & _on_map(p, pred)
+    use = inside & _closest_to_their_frame(p, pred, rk, inside) if PAIRING == "mutual" else inside
+    z = np.zeros(rk.shape)
+    z[use] = _z_of_pairs(p, tq[use], rk[use])
+    total = np.zeros(rk.shape[:4])
+    count = np.zeros(rk.shape[:4])
+    for o in range(rk.shape[4]):  # a fixed summation order
+        total += z[..., o]
+        count += use[..., o]
+    total /= np.sqrt(np.maximum(count, 1)) if SCORE_NORM == "sqrt" else np.maximum(count, 1)
+    flat = total.reshape(places.shape[0], places.shape[1], -1)
+    arg = np.argmax(flat, axis=2)  # first best: the lowest centre offset, then the lowest speed
+    score = np.take_along_axis(flat, arg[..., None], axis=2)[..., 0]
+    di, si = np.divmod(arg, sidx.shape[2])
+    centre = np.take_along_axis(x, di[..., None], axis=2)[..., 0]
+    speed = np.take_along_axis(v, si[..., None], axis=2)[..., 0]
+    return np.where(ok, score, -np.inf), centre, speed
+
+
+def _dp_steps(d: F64, unit: float, vmin: float, vmax: float) -> tuple[I64, I64]:
+    """Grid steps allowed between consecutive window frames ``d`` apart in query coordinate."""
+    lo = np.round(vmin * np.abs(d) / unit).astype(np.int64)
+    hi = np.maximum(lo, np.round(vmax * np.abs(d) / unit).astype(np.int64))
+    return lo, hi
+
+
+def _score_dp(p: _Problem, i: int, offs: I64, places: I64) -> tuple[F64, F64, F64]:
+    """Exact DP-path scores of query ``i`` at the sorted map rows ``places``, with the best centre
+    (tried at :func:`_centre_offsets` around each) and the path's mean speed."""
+    t, d = _window(p, i, offs)
+    w = len(t)
+    dx = _centre_offsets(p)
+    x = (p.rc[places][:, None] + dx[None, :]).ravel()  # [P * D]
+    centre = int(np.flatnonzero(t == i)[0])
+    reach = float(np.max(np.abs(d))) * p.vmax if w > 1 else 0.0
+    g = math.ceil(reach / p.unit - 1e-9) + 1
+    grid = np.arange(-g, g + 1, dtype=np.float64) * p.unit
+    rk = _nearest(p.rc, x[:, None] + grid[None, :])  # [P, G]
+    emis = _z_of_pairs(p, np.broadcast_to(t[:, None, None], (w,) + rk.shape), np.broadcast_to(rk, (w,) + rk.shape))
+    emis = np.where(_on_map(p, x[:, None] + grid[None, :])[None], emis, 0.0)  # off the map: no evidence
+    n_g = rk.shape[1]
+    mid = n_g // 2
+    total = np.zeros(len(x))
+    ends = np.zeros((2, len(x)))
+    for side, seq in ((0, range(centre + 1, w)), (1, range(centre - 1, -1, -1))):
+        cur = np.full((len(x), n_g), -np.inf)
+        cur[:, mid] = 0.0
+        prev = centre
+        for o in seq:
+            lo, hi = _dp_steps(np.array([d[o] - d[prev]]), p.unit, p.vmin, p.vmax)
+            nxt = np.full_like(cur, -np.inf)
+            for s in range(int(lo[0]), min(int(hi[0]), n_g - 1) + 1):
+                if side == 0:
+                    nxt[:, s:] = np.maximum(nxt[:, s:], cur[:, : n_g - s])
+                else:
+                    nxt[:, : n_g - s] = np.maximum(nxt[:, : n_g - s], cur[:, s:])
+            cur = nxt + emis[o]
+            prev = o
+        arg = np.argmax(cur, axis=1)
+        total = total + cur[np.arange(len(x)), arg]
+        ends[side] = (arg - mid) * p.unit
+    score = ((total + emis[centre, :, mid]) / math.sqrt(w)).reshape(len(places), len(dx))
+    span = (d[-1] - d[0]) if w > 1 else 0.0
+    speed = ((ends[0] - ends[1]) / span if span > 0 else np.full(len(x), np.nan)).reshape(score.shape)
+    arg = np.argmax(score, axis=1)
+    rows = np.arange(len(places))
+    return score[rows, arg], x.reshape(score.shape)[rows, arg], speed[rows, arg]
+
+
+def _place(p: _Problem, i: int, sc: F64, xc: F64, sp: F64, w: int, k: int, indices: I64, scores: F64,
+           margin: F64, speed: F64, window: I64, seq: BoolArray) -> None:
+    """Write query ``i``'s result from its scored centres (in vote order): the first
+    :data:`EXACT_PLACES` ranked by score, then the others ranked by score (so the best match does
+    not depend on ``k``), each reported as the map frame nearest it; a centre, or its reported
+    frame, within ``p.excl`` of a better one's is the same place (left out); the margin is the best
+    score minus the next place's."""
+    good = np.flatnonzero(np.isfinite(sc))
+    if not len(good):
+        return
+    late = (good >= EXACT_PLACES).astype(np.int64)
+    order = good[np.lexsort((xc[good], -sc[good], late))]
+    kept: list[int] = []
+    rows: list[int] = []
+    for e in order:
+        r = int(_nearest(p.rc, np.array([xc[e]]))[0])
+        if any(abs(xc[e] - xc[f]) <= p.excl or abs(p.rc[r] - p.rc[g]) <= p.excl for f, g in zip(kept, rows)):
+            continue
+        kept.append(int(e))
+        rows.append(r)
+    n = min(k, len(kept))
+    indices[i] = -1
+    scores[i] = -np.inf
+    indices[i, :n] = p.full_row[rows[:n]]
+    scores[i, :n] = sc[kept[:n]]
+    margin[i] = sc[kept[0]] - sc[kept[1]] if len(kept) > 1 else np.nan
+    speed[i] = sp[kept[0]]
+    window[i] = w
+    seq[i] = True
+
+
+def match_sequences(
+    query: npt.ArrayLike,
+    query_coord: npt.ArrayLike,
+    reference: npt.ArrayLike | Database,
+    reference_coord: npt.ArrayLike,
+    config: SequenceConfig | None = None,
+    *,
+    k: int = 5,
+    ref_mask: npt.ArrayLike | None = None,
+    runs: npt.ArrayLike | None = None,
+    ref_unit: float | None = None,
+    coordinate: str = "frames",
+    index: IVFIndex | None = None,
+    nprobe: int | None = None,
+    rerank: int | None = None,
+) -> SequenceMatch:
+    """Match the query drive against the reference as sequences (see the module doc).
+
+    ``query`` ``[Q, d]`` and ``reference`` ``[R, d]``: L2-normalised descriptors, rows in drive
+    order; ``query_coord`` ``[Q]`` and ``reference_coord`` ``[R]``: their coordinates along the
+    drives (frame index, seconds, metres: the unit of ``coordinate``, which also picks the
+    default speeds). ``ref_mask`` (bool ``[R]``): the map is the rows where it is True (the
+    others are not searched); returned rows are rows of the full ``reference``. ``runs``
+    (``[Q]`` labels, default one run): consecutive rows with the same label form a run (a
+    decreasing coordinate also starts one). ``ref_unit``: the reference drive's frame spacing in
+    coordinate units (default: the median positive spacing of ``reference_coord`` over all
+    rows). ``index``: an approximate index over the (masked) map for the candidates (default:
+    exact search; ``nprobe``/``rerank`` its settings); ``reference`` is then its database.
+    """
+    cfg = config or SequenceConfig()
+    if k < 1:
+        raise DescriptorError(f"k must be >= 1, got {k}")
+    q = _as_2d(query, "query")
+    _row_norms(q, "query")
+    if index is not None:
+        db = index.db
+    elif isinstance(reference, Database):
+        db = reference
+    else:
+        db = Database.of(reference, ref_mask, dim=q.shape[1])
+    n_q, n_m = q.shape[0], db.rows.shape[0]
+    if n_m and db.rows.shape[1] != q.shape[1]:
+        raise DescriptorError(f"query descriptors are {q.shape[1]}-d but references are {db.rows.shape[1]}-d")
+    qc = np.asarray(query_coord, dtype=np.float64)
+    rc_all = np.asarray(reference_coord, dtype=np.float64)
+    n_ref = rc_all.shape[0] if db.index is not None else n_m
+    if qc.shape != (n_q,) or (db.index is None and rc_all.shape != (n_m,)) or rc_all.ndim != 1:
+        raise DescriptorError(f"coordinates must be one per row: query {qc.shape} for {n_q}, reference "
+                              f"{rc_all.shape} for {n_ref}")
+    if not (np.all(np.isfinite(qc)) and np.all(np.isfinite(rc_all))):
+        raise DescriptorError("coordinates must be finite")
+    labels = np.zeros(n_q, np.int64) if runs is None else np.asarray(runs).astype(np.int64)
+    if labels.shape != (n_q,):
+        raise DescriptorError(f"runs must have one label per query row, got shape {labels.shape}")
+    kk = min(k, max(1, n_m))
+    info: dict[str, Any] = {**cfg.to_dict(), "coordinate": coordinate, "k": k}
+
+    rc_db = rc_all if db.index is None else rc_all[db.index]
+    order = np.argsort(rc_db, kind="stable")
+    full_row = order if db.index is None else db.index[order]
+    full_row = full_row.astype(np.int64)
+    sorted_of_full = np.full(max(n_ref, 1), -1, dtype=np.int64)
+    sorted_of_full[full_row] = np.arange(n_m)
+
+    n_cand = max(cfg.candidates + 1, kk) if cfg.enabled else kk  # one more: the floor of the gains
+    if n_q and n_m:
+        if index is not None:
+            ci, cs = index.search(q, n_cand, nprobe, rerank)
+        else:
+            ci, cs = match(q, db, k=n_cand)  # rows of the full reference
+    else:
+        ci, cs = np.full((n_q, n_cand), -1, np.int64), np.full((n_q, n_cand), -np.inf, np.float32)
+
+    # single-frame results (every query has them; sequence queries are overwritten below)
+    indices = np.full((n_q, k), -1, dtype=np.int64)
+    scores = np.full((n_q, k), -np.inf)
+    indices[:, :kk] = ci[:, :kk]
+    scores[:, :kk] = cs[:, :kk]
+    margin = np.where(np.isfinite(scores[:, 1]), scores[:, 0] - scores[:, 1], np.nan) if k > 1 else \
+        np.full(n_q, np.nan)
+    speed = np.full(n_q, np.nan)
+    window = np.ones(n_q, dtype=np.int64)
+    seq = np.zeros(n_q, dtype=bool)
+
+    run_lo, run_hi = _run_bounds(labels, qc)
+    run_len = run_hi - run_lo
+    info["runs"] = len(np.unique(run_lo)) if n_q else 0
+    # offline: a run of length + 1 frames or more; causal: a frame with length frames of its run
+    # before it (decided from the past only: a live robot does not know how long a run will be)
+    so_far = np.arange(n_q) - run_lo + 1
+    use = ((so_far if cfg.causal else run_len) >= cfg.length + 1) if cfg.enabled else np.zeros(n_q, bool)
+    if not cfg.enabled:
+        info["fallback"] = "single frames asked for (sequence length 0)"
+    elif n_q and not use.any():
+        info["fallback"] = (f"no run of {cfg.length + 1} or more ordered frames (a single image, or frames whose "
+                            "stamps do not increase): matched frame by frame")
+    elif n_q and not use.all():
+        where = (f"with fewer than {cfg.length} frames of their run before them" if cfg.causal else
+                 f"in runs shorter than {cfg.length + 1} frames")
+        info["fallback"] = f"{int((~use).sum())} frame(s) {where}: matched frame by frame"
+    else:
+        info["fallback"] = None
+    info["sequence_queries"] = int(use.sum())
+    info["single_queries"] = int(n_q - use.sum())
+    if info["fallback"]:
+        log.info("sequence matching: %s", info["fallback"])
+
+    if use.any() and n_m:
+        rc = rc_db[order]
+        unit = float(ref_unit) if ref_unit else _median_step(rc_all if db.index is not None else rc)
+        spacing = _median_step(rc) or unit
+        qsteps = []
+        for a in np.unique(run_lo[use]):
+            qsteps.append(np.abs(np.diff(qc[a : run_hi[a]])))
+        qs = np.concatenate(qsteps) if qsteps else np.zeros(0)
+        qstep = float(np.median(qs[qs > 0])) if np.any(qs > 0) else unit
+        vmin, vmax = cfg.speed_range(coordinate)
+        speeds, step = _speed_grid(cfg, vmin, vmax, unit, qstep)
+        mu, sd = _stats(q, db, cfg.normalize)
+        p = _Problem(q, qc, run_lo, run_hi, db.rows[order], rc, full_row, mu, sd, unit, spacing,
+                     cfg.exclude * unit, speeds, vmin, vmax)
+        info.update({"speeds": [vmin, vmax], "speed_step": step, "n_speeds": len(speeds), "unit": unit})
+        cand = np.where(ci >= 0, sorted_of_full[np.maximum(ci, 0)], -1)
+        with np.errstate(invalid="ignore"):
+            z = np.where(ci >= 0, (cs.astype(np.float64) - mu[:, None]) / sd[:, None], -np.inf)
+        # a candidate's vote: how far it stands out of the frame's next candidate (the (K+1)-th)
+        n_valid = (ci >= 0).sum(axis=1)
+        floor = z[np.arange(n_q), np.clip(n_valid - 1, 0, cfg.candidates)]
+        gain = np.where(ci[:, : cfg.candidates] >= 0, z[:, : cfg.candidates] - floor[:, None], 0.0)
+        cand = cand[:, : cfg.candidates]
+        offs = _offsets(cfg)
+        n_places = max(k, EXACT_PLACES)
+        centres_all = np.flatnonzero(use).astype(np.int64)
+        for a in range(0, len(centres_all), cfg.block):
+            centres = centres_all[a : a + cfg.block]
+            places, vbest = _votes(p, centres, offs, cand, gain, n_places)
+            if cfg.path == "constant":
+                sc, xc, sp = _score_constant(p, centres, offs, places, vbest)
+            else:
+                sc = np.full(places.shape, -np.inf)
+                xc = np.zeros(places.shape)
+                sp = np.full(places.shape, np.nan)
+                for j, i in enumerate(centres):
+                    ok = places[j] >= 0
+                    if ok.any():
+                        sc[j, ok], xc[j, ok], sp[j, ok] = _score_dp(p, int(i), offs, places[j, ok])
+            _, valid, _d = _windows(p, centres, offs)
+            for j, i in enumerate(centres):
+                _place(p, int(i), sc[j], xc[j], sp[j], int(valid[j].sum()), k, indices, scores, margin, speed,
+                       window, seq)
+    sims = _similarities(q, db, indices, sorted_of_full, order)
+    return SequenceMatch(indices, scores, sims, margin, speed, window, seq, info)
+
+
+def _median_step(c: F64) -> float:
+    s = np.diff(np.sort(c))
+    s = s[s > 0]
+    return float(np.median(s)) if s.size else 1.0
+
+
+def _similarities(q: F32, db: Database, indices: I64, sorted_of_full: I64, order: I64) -> F32:
+    """Cosine similarity of each query frame to each matched frame (float64 products, pair by pair)."""
+    out = np.full(indices.shape, -np.inf, dtype=np.float32)
+    qr, kr = np.nonzero(indices >= 0)
+    if len(qr):
+        db_row = order[sorted_of_full[indices[qr, kr]]]
+        out[qr, kr] = _rescore(q, db.rows, qr.astype(np.int64), db_row.astype(np.int64)).astype(np.float32)
+    return out
+
+
+def match_tables(
+    query: DescriptorTable,
+    reference: DescriptorTable,
+    config: SequenceConfig | None = None,
+    *,
+    k: int = 5,
+    index: IVFIndex | None = None,
+    nprobe: int | None = None,
+    rerank: int | None = None,
+) -> SequenceMatch:
+    """:func:`match_sequences` for two descriptor tables (a query log and a map): the coordinate
+    is resolved (:func:`resolve_coordinate`), the query is cut into runs (:func:`drive_runs`)
+    and put in drive order per topic, a map of several topics keeps its topics apart, and the
+    reference frame spacing comes from the map's frame indices (so a sparse map's gaps are
+    known). Results are in the query table's row order."""
+    cfg = config or SequenceConfig()
+    coordinate, note = resolve_coordinate(cfg.coordinate, query, reference)
+    qc = drive_coordinates(query, coordinate)
+    labels, gap = drive_runs(query, cfg.max_gap_s)
+    # query rows topic by topic (a run never mixes topics), each in table order
+    perm = np.concatenate(_topic_groups(query)) if len(query) else np.zeros(0, np.int64)
+    rc = drive_coordinates(reference, coordinate)
+    unit = reference_unit(reference, rc)
+    groups = _topic_groups(reference)
+    if len(groups) > 1:  # several cameras: each topic's coordinates far from the others'
+        span = float(rc.max() - rc.min()) + 1.0
+        for n, rows in enumerate(groups):
+            rc[rows] = rc[rows] + n * 4.0 * span
+    res = match_sequences(query.descriptors[perm], qc[perm], index.db if index is not None else reference.descriptors,
+                          rc, cfg, k=k, runs=labels[perm], ref_unit=unit, coordinate=coordinate, index=index,
+                          nprobe=nprobe, rerank=rerank)
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(len(perm))
+    res = SequenceMatch(res.indices[inv], res.scores[inv], res.similarities[inv], res.margin[inv], res.speed[inv],
+                        res.window[inv], res.sequence[inv], res.info)
+    res.info["coordinate_note"] = note
+    res.info["max_gap_s"] = gap
+    return res

@@ -1,0 +1,293 @@
+"""Tests of memlog.descriptors.sequence: drives matched as sequences.
+
+Every expectation is independent of the code under test: the synthetic drives are built from a
+list of true places (the query's path, with stops and a fast stretch), and a result is checked
+against that list; single-frame results are checked against a brute-force argmax.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from memlog.descriptors.base import DescriptorMeta
+from memlog.descriptors.sequence import (
+    SequenceConfig,
+    drive_runs,
+    match_sequences,
+    match_tables,
+    resolve_coordinate,
+)
+from memlog.descriptors.table import DescriptorTable
+from memlog.errors import ConfigError, DescriptorError
+
+N_PLACES = 300
+DIM = 32
+NOISE = 0.7  # noise of a query frame: single frames are often wrong (R@1 about 0.5), sequences are not
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def places() -> np.ndarray:
+    """Descriptors of N_PLACES unrelated places (like Nordland's frames: a neighbour is another place)."""
+    return np.random.default_rng(0).normal(size=(N_PLACES, DIM))
+
+
+def _path() -> np.ndarray:
+    """The query's true places: normal speed, a stop of 30 frames, a 3x stretch, a 2x stretch, normal."""
+    return np.r_[np.arange(0, 60), np.full(30, 60), np.arange(61, 150, 3), np.arange(150, 220, 2),
+                 np.arange(220, 290)].astype(np.int64)
+
+
+def _query(places: np.ndarray, path: np.ndarray, seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return _unit(places[path] + NOISE * rng.normal(size=(len(path), DIM)) * np.sqrt(DIM) / 2)
+
+
+def _single_best(q: np.ndarray, r: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    sim = q.astype(np.float64) @ r.astype(np.float64).T
+    if mask is not None:
+        sim[:, ~mask] = -np.inf
+    return np.argmax(sim, axis=1)
+
+
+def _share_within(found: np.ndarray, true: np.ndarray, tol: float) -> float:
+    return float(np.mean(np.abs(found - true) <= tol))
+
+
+def test_stops_and_a_fast_stretch_localize(places: np.ndarray) -> None:
+    path = _path()
+    ref = _unit(places)
+    q = _query(places, path)
+    frames = np.arange(len(path), dtype=np.float64)
+    single = _share_within(_single_best(q, ref), path, 1)
+    assert single < 0.6  # the task is hard frame by frame (measured 0.48)
+    for cfg in (SequenceConfig(), SequenceConfig(causal=True), SequenceConfig(path="dp")):
+        res = match_sequences(q, frames, ref, np.arange(N_PLACES, dtype=np.float64), cfg, k=3)
+        assert res.sequence.all() if not cfg.causal else res.sequence[cfg.length:].all()
+        # causal windows straddle each change of speed for up to N frames: measured 0.94 / 0.96 (dp)
+        got = _share_within(res.indices[res.sequence, 0], path[res.sequence], 1)
+        assert got >= (0.9 if cfg.causal else 0.95), (cfg.path, cfg.causal, got)
+        stop = slice(70 if cfg.causal else 60, 90)  # standing still at place 60 (causal: once N frames in)
+        assert _share_within(res.indices[stop, 0], path[stop], 1) == 1.0
+        ranks = res.indices[:, :3]
+        assert np.all(np.abs(ranks[:, 0] - ranks[:, 1]) > cfg.exclude)  # ranks are distinct places
+        assert np.all(res.margin[res.sequence] >= 0)
+    # the speed found: 0 in the stop, about 3 in the 3x stretch (constant-speed path, offline)
+    res = match_sequences(q, frames, ref, np.arange(N_PLACES, dtype=np.float64), SequenceConfig(), k=1)
+    assert np.median(res.speed[70:80]) == pytest.approx(0.0, abs=0.15)
+    assert np.median(res.speed[100:110]) == pytest.approx(3.0, abs=0.3)
+
+
+def test_a_map_at_another_frame_rate(places: np.ndarray) -> None:
+    """The map shows every place twice (twice the frame rate): in frames the query's speed doubles
+    (2 map frames per query frame, 6 in its 3x stretch: beyond the default 0..3, so the range is
+    widened); in stamps it stays 1 (10 Hz query, 20 Hz map)."""
+    path = _path()
+    ref = _unit(np.repeat(places, 2, axis=0) + 0.05 * np.random.default_rng(3).normal(size=(2 * N_PLACES, DIM)))
+    q = _query(places, path)
+    frames = np.arange(len(path), dtype=float)
+    res = match_sequences(q, frames, ref, np.arange(2 * N_PLACES, dtype=float), SequenceConfig(speeds=(0, 6.5)), k=1)
+    assert _share_within(res.indices[:, 0] // 2, path, 1) >= 0.95
+    assert np.median(res.speed[:50]) == pytest.approx(2.0, abs=0.2)
+    narrow = match_sequences(q, frames, ref, np.arange(2 * N_PLACES, dtype=float), SequenceConfig(), k=1)
+    assert _share_within(narrow.indices[90:120, 0] // 2, path[90:120], 1) < 0.5  # 6x is outside 0..3
+    ref_t = _table(ref, np.arange(2 * N_PLACES), np.arange(2 * N_PLACES) * 50_000_000)  # 20 Hz
+    q_t = _table(q, np.arange(len(path)), 10**18 + np.arange(len(path)) * 100_000_000)  # 10 Hz
+    res_t = match_tables(q_t, ref_t, SequenceConfig(coordinate="time"), k=1)
+    assert _share_within(res_t.indices[:, 0] // 2, path, 1) >= 0.95
+    assert np.median(res_t.speed[:50]) == pytest.approx(1.0, abs=0.1)
+
+
+def test_a_drive_finds_itself_up_to_its_ends(places: np.ndarray) -> None:
+    ref = _unit(places)
+    c = np.arange(N_PLACES, dtype=np.float64)
+    res = match_sequences(ref, c, ref, c, SequenceConfig(), k=2)
+    np.testing.assert_array_equal(res.indices[:, 0], np.arange(N_PLACES))
+    assert np.all(res.speed == pytest.approx(1.0, abs=0.11))
+
+
+def test_causal_uses_no_future_frame(places: np.ndarray) -> None:
+    path = _path()
+    ref = _unit(places)
+    q = _query(places, path)
+    frames = np.arange(len(path), dtype=np.float64)
+    rc = np.arange(N_PLACES, dtype=np.float64)
+    cfg = SequenceConfig(causal=True)
+    a = match_sequences(q, frames, ref, rc, cfg, k=3)
+    for cut in (15, 75, 140):
+        other = q.copy()
+        other[cut + 1:] = _unit(np.random.default_rng(cut).normal(size=(len(q) - cut - 1, DIM)))  # another future
+        b = match_sequences(other, frames, ref, rc, cfg, k=3)
+        past = slice(0, cut + 1)
+        for name in ("indices", "scores", "margin", "speed", "window", "sequence"):
+            np.testing.assert_array_equal(getattr(a, name)[past], getattr(b, name)[past], err_msg=f"{name} {cut}")
+    # and offline matching does use the future (the check above is not vacuous)
+    off = match_sequences(q, frames, ref, rc, SequenceConfig(), k=3)
+    other = q.copy()
+    other[76:] = _unit(np.random.default_rng(9).normal(size=(len(q) - 76, DIM)))
+    assert not np.array_equal(off.scores[:76], match_sequences(other, frames, ref, rc, SequenceConfig(), k=3).scores[:76])
+    # the first frames of a run have no full causal window yet: matched frame by frame, and said so
+    assert not a.sequence[: cfg.length].any() and a.sequence[cfg.length:].all()
+    assert "fewer than 10 frames of their run before them" in a.info["fallback"]
+
+
+@pytest.mark.parametrize("path_model", ["constant", "dp"])
+def test_results_do_not_depend_on_blocking(places: np.ndarray, path_model: str) -> None:
+    path = _path()
+    ref = _unit(places)
+    q = _query(places, path)
+    frames = np.arange(len(path), dtype=np.float64)
+    rc = np.arange(N_PLACES, dtype=np.float64)
+    runs = (np.arange(len(path)) >= 100).astype(np.int64)  # two runs: windows stop at the boundary
+    results = [match_sequences(q, frames, ref, rc, SequenceConfig(block=b, path=path_model), k=4, runs=runs)
+               for b in (1, 7, 64, 10_000)]
+    for r in results[1:]:
+        for name in ("indices", "scores", "similarities", "margin", "speed", "window", "sequence"):
+            np.testing.assert_array_equal(getattr(results[0], name), getattr(r, name), err_msg=name)
+    # windows never cross the run boundary: frame 99's offline window is its 11 past frames and itself
+    assert results[0].window[99] == 11 and results[0].window[100] == 11 and results[0].window[50] == 21
+
+
+@pytest.mark.parametrize("step", [2, 4])
+def test_sparse_maps_localize(places: np.ndarray, step: int) -> None:
+    """A map keeping every 2nd / 4th frame of a drive along the places: the best match is the kept
+    frame nearest the true place (within half the spacing), for a mask and for a table of the kept
+    frames only (with their frame indices in the reference drive)."""
+    path = _path()
+    ref = _unit(places + 0.1 * np.random.default_rng(5).normal(size=places.shape))  # the map drive's own noise
+    q = _query(places, path)
+    frames = np.arange(len(path), dtype=np.float64)
+    rc = np.arange(N_PLACES, dtype=np.float64)
+    mask = np.arange(N_PLACES) % step == 0
+    single = _share_within(_single_best(q, ref, mask), path, step / 2)
+    res = match_sequences(q, frames, ref, rc, SequenceConfig(), k=2, ref_mask=mask)
+    assert np.all(mask[res.indices[:, 0]])  # only map frames are returned, as rows of the full reference
+    got = _share_within(res.indices[:, 0], path, step / 2)
+    assert got >= {2: 0.9, 4: 0.8}[step] and got > single + 0.4, (got, single)  # measured 0.95 / 0.87
+    kept = np.flatnonzero(mask)  # the same map as a table of the kept frames: rows are kept frames
+    res2 = match_sequences(q, frames, ref[kept], kept.astype(np.float64), SequenceConfig(), k=2, ref_unit=1.0)
+    np.testing.assert_array_equal(kept[res2.indices[:, 0]], res.indices[:, 0])
+
+
+def _table(desc: np.ndarray, frames: np.ndarray, t_ns: np.ndarray, xy: np.ndarray | None = None,
+           topic: str = "/cam") -> DescriptorTable:
+    pos = {} if xy is None else {"x": xy[:, 0], "y": xy[:, 1], "z": np.zeros(len(desc))}
+    return DescriptorTable(topic=[topic] * len(desc), frame_index=frames, log_time_ns=t_ns, stamp_ns=t_ns,
+                           descriptors=desc, meta=DescriptorMeta("test", {}, desc.shape[1]), positions=pos)
+
+
+def test_positions_mode_matches_in_metres(places: np.ndarray) -> None:
+    """Both drives carry positions: the query's stop adds no distance, its fast stretch covers more
+    metres per frame; matched in metres the speed is about 1 everywhere."""
+    path = _path()
+    ref_desc = _unit(places)
+    q = _query(places, path)
+    rng = np.random.default_rng(7)
+    along = lambda p: np.stack([np.asarray(p, float) * 8.0, np.zeros(len(p))], axis=1)  # noqa: E731
+    ref = _table(ref_desc, np.arange(N_PLACES), np.arange(N_PLACES) * 100_000_000, along(np.arange(N_PLACES)))
+    qxy = along(path) + rng.normal(0, 0.05, (len(path), 2))
+    qt = _table(q, np.arange(len(path)), 10**18 + np.arange(len(path)) * 100_000_000, qxy)
+    assert resolve_coordinate("auto", qt, ref) == ("positions", None)
+    res = match_tables(qt, ref, SequenceConfig(), k=1)
+    assert res.info["coordinate"] == "positions" and res.info["speeds"] == [0.8, 1.25]
+    assert _share_within(res.indices[:, 0], path, 1) >= 0.95
+    moving = np.r_[20:50, 95:115, 160:220]  # rows of the normal, 3x and normal stretches
+    assert np.median(res.speed[moving]) == pytest.approx(1.0, abs=0.1)
+    # without positions in the query, auto matches in frames and says so; positions is refused
+    bare = _table(q, np.arange(len(path)), 10**18 + np.arange(len(path)) * 100_000_000)
+    assert resolve_coordinate("auto", bare, ref) == ("frames", "no positions in both drives: matched in frames")
+    with pytest.raises(DescriptorError, match="the query has no position"):
+        match_tables(bare, ref, SequenceConfig(coordinate="positions"))
+
+
+def test_time_mode_follows_the_stamps(places: np.ndarray) -> None:
+    """Matched in stamps, a query at half the frame rate (every 2nd place, 5 Hz) has speed 1."""
+    path = np.arange(0, 280, 2)
+    ref = _table(_unit(places), np.arange(N_PLACES), np.arange(N_PLACES) * 100_000_000)
+    qt = _table(_query(places, path), np.arange(len(path)), 10**18 + np.arange(len(path)) * 200_000_000)
+    res = match_tables(qt, ref, SequenceConfig(coordinate="time"), k=1)
+    assert _share_within(res.indices[:, 0], path, 1) >= 0.95
+    assert np.median(res.speed) == pytest.approx(1.0, abs=0.1)
+
+
+def test_single_images_and_unordered_frames_fall_back(places: np.ndarray) -> None:
+    ref_desc = _unit(places)
+    ref = _table(ref_desc, np.arange(N_PLACES), np.arange(N_PLACES) * 100_000_000)
+    q = _query(places, np.arange(40, 80))
+    # one image
+    one = match_tables(_table(q[:1], np.arange(1), np.array([5])), ref, SequenceConfig(), k=3)
+    assert not one.sequence.any() and "a single image" in one.info["fallback"]
+    np.testing.assert_array_equal(one.indices[0], np.argsort(-(q[:1].astype(np.float64) @ ref_desc.T.astype(np.float64))[0])[:3])
+    # a log of unordered frames: stamps do not increase, so no run reaches 11 frames
+    rng = np.random.default_rng(4)
+    stamps = rng.permutation(40) * 100_000_000
+    shuffled = _table(q, np.arange(40), stamps)
+    labels, _gap = drive_runs(shuffled)
+    assert np.bincount(labels).max() < 11
+    res = match_tables(shuffled, ref, SequenceConfig(), k=2)
+    assert not res.sequence.any() and res.info["sequence_queries"] == 0
+    np.testing.assert_array_equal(res.indices[:, 0], _single_best(q, ref_desc))
+    np.testing.assert_array_equal(res.window, 1)
+    # the same frames in order are matched as a sequence
+    ordered = match_tables(_table(q, np.arange(40), np.arange(40) * 100_000_000), ref, SequenceConfig(), k=2)
+    assert ordered.sequence.all() and ordered.info["fallback"] is None
+    # a gap in the stamps cuts the drive into runs; a run of 5 frames is matched frame by frame
+    gap = np.arange(40) * 100_000_000 + np.where(np.arange(40) >= 35, 60_000_000_000, 0)
+    cut = match_tables(_table(q, np.arange(40), gap), ref, SequenceConfig(), k=2)
+    assert cut.sequence[:35].all() and not cut.sequence[35:].any() and cut.info["runs"] == 2
+    assert "5 frame(s) in runs shorter than 11 frames" in cut.info["fallback"]
+
+
+def test_sequence_zero_is_single_frame_search(places: np.ndarray) -> None:
+    ref = _unit(places)
+    q = _query(places, _path())
+    res = match_sequences(q, np.arange(len(q), dtype=float), ref, np.arange(N_PLACES, dtype=float),
+                          SequenceConfig(length=0), k=4)
+    sim = q.astype(np.float64) @ ref.astype(np.float64).T
+    order = np.argsort(-sim, axis=1, kind="stable")[:, :4]
+    np.testing.assert_array_equal(res.indices, order)
+    np.testing.assert_allclose(res.scores, np.take_along_axis(sim, order, axis=1), atol=1e-5)
+    assert not res.sequence.any() and res.info["fallback"].startswith("single frames")
+    np.testing.assert_allclose(res.confidence, np.take_along_axis(sim, order, axis=1)[:, 0], atol=1e-5)
+
+
+def test_two_topics_never_mix(places: np.ndarray) -> None:
+    """Two cameras in the query are two drives; a map of two cameras keeps them apart."""
+    ref_desc = _unit(places)
+    t = np.arange(N_PLACES) * 100_000_000
+    ref = DescriptorTable(topic=["/a"] * N_PLACES + ["/b"] * N_PLACES, frame_index=np.r_[np.arange(N_PLACES), np.arange(N_PLACES)],
+                          log_time_ns=np.r_[t, t], stamp_ns=np.r_[t, t], descriptors=np.r_[ref_desc, ref_desc[::-1]],
+                          meta=DescriptorMeta("test", {}, DIM))
+    path = np.arange(100, 160)
+    q = _query(places, path)
+    inter = np.empty((2 * len(path), DIM), np.float32)  # interleaved rows of two topics, as a log holds them
+    inter[0::2], inter[1::2] = q, q
+    qt = DescriptorTable(topic=["/a", "/b"] * len(path), frame_index=np.arange(len(path)).repeat(2),
+                         log_time_ns=10**18 + np.arange(len(path)).repeat(2) * 100_000_000,
+                         stamp_ns=10**18 + np.arange(len(path)).repeat(2) * 100_000_000, descriptors=inter,
+                         meta=DescriptorMeta("test", {}, DIM))
+    res = match_tables(qt, ref, SequenceConfig(), k=1)
+    assert res.sequence.all() and res.info["runs"] == 2
+    best = res.indices[:, 0]
+    assert np.all(best < N_PLACES)  # the map's /a frames are the places in order; /b holds them reversed
+    assert _share_within(best[0::2], path, 1) >= 0.95 and _share_within(best[1::2], path, 1) >= 0.95
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"length": -1}, "length must be an integer >= 0"),
+    ({"length": 2.5}, "length must be an integer"),
+    ({"length": 0, "causal": True}, "causal needs a sequence"),
+    ({"speeds": (3.0, 1.0)}, "0 <= min <= max"),
+    ({"speeds": (-1.0, 2.0)}, "0 <= min <= max"),
+    ({"candidates": 0}, "candidates must be an integer >= 1"),
+    ({"coordinate": "metres"}, "coordinate must be one of"),
+    ({"path": "spline"}, "path must be one of"),
+    ({"max_gap_s": 0}, "max_gap_s must be a number > 0"),
+])
+def test_bad_settings_are_config_errors(kw: dict, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        SequenceConfig(**kw)
