@@ -219,4 +219,4 @@ def test_evaluate_quick_trials_several_descriptors(all_scored: Path, tmp_path: P
                         "--max-frames", "3", "--seeds", "2", "--no-report"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     lines = [ln for ln in r.stdout.splitlines() if ln.startswith(("thumbnail", "dinov2-gem"))]
-    assert len(lines) == 8 and "Traceback" not in r.stderr  # 4 maps per descriptor in one table
+    assert len(lines) == 10 and "Traceback" not in r.stderr  # 5 maps per descriptor (exact selection too), one table

@@ -441,6 +441,13 @@ def add_localize(sub: Any) -> None:
     p.add_argument("--time-search", action="store_true",
                    help="also time the exact search of the whole map separately (repeated, batched and one query "
                         "at a time)")
+    add_sequence_flags(p)
+    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.set_defaults(func=cmd_localize)
+
+
+def add_sequence_flags(p: Any) -> None:
+    """How a query drive is matched as sequences (``localize``, ``evaluate``)."""
     g = p.add_argument_group("sequences (on by default: the query is matched as a drive)")
     g.add_argument("--sequence", type=nonneg_int, metavar="N",
                    help="match each query frame together with the N frames before and after it (default 10); 0: "
@@ -461,8 +468,6 @@ def add_localize(sub: Any) -> None:
     g.add_argument("--max-gap", type=positive_float, metavar="S",
                    help="a gap of more than S seconds between query stamps starts a new run (sequences never cross "
                         "one; default: 10 x the median frame interval)")
-    p.add_argument("--json", action="store_true", help="print a JSON summary")
-    p.set_defaults(func=cmd_localize)
 
 
 _SEQUENCE_FLAGS = {"causal": "--causal", "speeds": "--speeds", "sequence_k": "--sequence-k",
@@ -556,6 +561,10 @@ def add_evaluate(sub: Any) -> None:
     p.add_argument("--reference-topic", help="reference camera topic (default: the first)")
     p.add_argument("--query-topic", help="query camera topic (default: the first)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report (an older one in OUT is removed)")
+    p.add_argument("--candidates", type=count_or_all, metavar="K|all",
+                   help="the memorable map is the one `memlog map --candidates K` writes (default %(default_k)s); "
+                        "the exact selection is reported beside it" % {"default_k": DEFAULT_CANDIDATES})
+    add_sequence_flags(p)
     add_config_flags(p)
     p.set_defaults(func=cmd_evaluate)
 
@@ -581,6 +590,12 @@ def evaluate_config(args: argparse.Namespace) -> Any:
         flags["whiten"] = False
     if args.max_frames is not None:
         flags["max_frames"] = args.max_frames
+    if args.candidates is not None:
+        if select.mode != "segment":
+            raise ConfigError(f"--candidates applies to segment selection only, not --select {select.mode}")
+        flags["candidates"] = args.candidates
+    if any(getattr(args, d, None) not in (None, False) for d in ("sequence", *_SEQUENCE_FLAGS)):
+        flags["sequence"] = sequence_config(args)
     if args.start is not None or args.end is not None or args.stride != 1:
         flags["window"] = frame_window(args, args.reference)
         flags["query_window"] = frame_window(args, args.query)
@@ -603,17 +618,25 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     rows = []
     for kind, kres in res["descriptors"].items():
         white = "whitened" if (kres.get("whitening") or {}).get("sha256") else "raw"
-        for name in ("full_unwhitened", "full", "memorable", "uniform", "random"):
+        for name in ("full_unwhitened", "full", "memorable", "memorable_exact", "uniform", "uniform_distance",
+                     "random"):
             if name not in kres:
                 continue
             r = kres[name]
-            label = "full" if name == "full_unwhitened" else name
+            label = {"full_unwhitened": "full", "memorable_exact": "memorable (exact)", "uniform": "every k-th",
+                     "uniform_distance": "uniform by distance"}.get(name, name)
             rows.append([kind, "raw" if name == "full_unwhitened" else white, label, str(r["frames"]),
                          fmt3(r["coverage"]), fmt3(r["auc"]), fmt3(r["recall@1"]), fmt3(r.get("recall@5")),
+                         fmt3((r.get("single_frame") or {}).get("recall@1")),
                          fmt3(r["paper_protocol"]["auc"]), fmt3(r["paper_protocol"]["recall@1"]),
                          f"{r['match_seconds_per_query'] * 1e3:.3f}"])
-    print(table(rows, ["descriptor", "whitening", "map", "frames", "coverage", "AUC", "R@1", "R@5", "paper AUC",
-                       "paper R@1", "ms/query"]))
+    print(table(rows, ["descriptor", "whitening", "map", "frames", "coverage", "AUC", "R@1", "R@5", "R@1 single",
+                       "paper AUC", "paper R@1", "ms/query"]))
+    m = res.results.get("matching", {})
+    info(f"matched as {m.get('matching', 'single frame')}" + (
+        f" ({m['sequence']['length']} frames {'before' if m['sequence']['causal'] else 'before and after'}, "
+        f"{m['coordinate']}; R@1 single: each map matched frame by frame)" if m.get("sequence") else "")
+        + (f"; {m['fallback']}" if m.get("fallback") else ""))
     for kind, kres in res["descriptors"].items():
         if kres["descriptor"]["requested"] == "auto":
             info(f"descriptor auto -> {kind} (frames {kres['descriptor']['frame_size']}; "

@@ -158,9 +158,14 @@ def _gallery(title: str, rows: list[int], table: ScoreTable, sel: Selection, thu
 
 def _table_html(results: dict[str, Any]) -> str:
     head = ("<tr><th>map</th><th>frames</th><th>coverage</th><th>AUC</th><th>R@1</th><th>R@5</th><th>R@10</th>"
-            "<th>P@100%R</th><th>ms/query</th><th>paper AUC</th><th>paper R@1</th></tr>")
+            "<th>P@100%R</th><th>ms/query</th><th>paper AUC</th><th>paper R@1</th>"
+            "<th>single-frame AUC</th><th>single-frame R@1</th><th>single-frame paper R@1</th></tr>")
     rows = []
-    for name in ("full", "memorable", "uniform", "random"):
+    labels = {"memorable_exact": "memorable (exact selection)", "uniform": "every k-th frame",
+              "uniform_distance": "uniform by distance"}
+    for name in ("full", "memorable", "memorable_exact", "uniform", "uniform_distance", "random"):
+        if name not in results:
+            continue
         r = results[name]
         std = r.get("std", {})
         def f(key: str, d: dict[str, Any] = r, s: dict[str, Any] = std) -> str:
@@ -169,10 +174,14 @@ def _table_html(results: dict[str, Any]) -> str:
                 return "-"
             return f"{v:.3f}" + (f" ± {s[key]:.3f}" if key in s else "")
         pp = r["paper_protocol"]
-        rows.append(f"<tr><td>{name}</td><td>{r['frames']}</td><td>{f('coverage')}</td><td>{f('auc')}</td>"
-                    f"<td>{f('recall@1')}</td><td>{f('recall@5')}</td><td>{f('recall@10')}</td>"
+        sf = r.get("single_frame") or {}
+        sfp = sf.get("paper_protocol") or {}
+        rows.append(f"<tr><td>{labels.get(name, name)}</td><td>{r['frames']}</td><td>{f('coverage')}</td>"
+                    f"<td>{f('auc')}</td><td>{f('recall@1')}</td><td>{f('recall@5')}</td><td>{f('recall@10')}</td>"
                     f"<td>{f('precision@100%recall')}</td><td>{1e3 * r['match_seconds_per_query']:.3f}</td>"
-                    f"<td>{f('auc', pp, pp.get('std', {}))}</td><td>{f('recall@1', pp, pp.get('std', {}))}</td></tr>")
+                    f"<td>{f('auc', pp, pp.get('std', {}))}</td><td>{f('recall@1', pp, pp.get('std', {}))}</td>"
+                    f"<td>{f('auc', sf, sf.get('std', {}))}</td><td>{f('recall@1', sf, sf.get('std', {}))}</td>"
+                    f"<td>{f('recall@1', sfp, sfp.get('std', {}))}</td></tr>")
     return f"<table>{head}{''.join(rows)}</table>"
 
 
@@ -210,8 +219,11 @@ descriptor <code>{html.escape(results['settings']['descriptor']['kind'])}</code>
 selection <code>{html.escape(results['memorable']['select'])}</code>, thresholds
 <code>{html.escape(json.dumps(th))}</code>.</p>
 <h2>Results</h2>{_table_html(results)}
-<p>Map-only: only map frames are searched. Paper protocol: the full reference database is searched and a query
-whose best match was discarded reports no match. Random: mean ± std over {results['random']['seeds']} seeds.</p>
+<p>Matched as {html.escape(str(results.get('matching', {}).get('matching', 'single frame')))}
+{html.escape(json.dumps(results.get('matching', {}).get('sequence') or {}))}; the single-frame columns match the
+same maps frame by frame. Map-only: only map frames are searched. Paper protocol: the full reference database is
+searched and a query whose best match was discarded reports no match. Random: mean ± std over
+{results['random']['seeds']} seeds.</p>
 <h2>Precision-recall</h2>{''.join(pr)}
 <h2>Threshold sweeps</h2>{''.join(sweeps)}
 <h2>Scores</h2>{''.join(hists)}

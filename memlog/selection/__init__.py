@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from memlog.selection.baselines import (
     baseline_selection,
+    distance_uniform_mask,
     random_indices,
     random_mask,
     random_masks,
@@ -48,6 +49,7 @@ __all__ = [
     "Duplicates",
     "find_duplicates",
     "drop_duplicates",
+    "distance_uniform_mask",
     "uniform_indices",
     "uniform_mask",
     "random_indices",

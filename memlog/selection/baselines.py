@@ -26,6 +26,7 @@ __all__ = [
     "random_mask",
     "random_masks",
     "baseline_selection",
+    "distance_uniform_mask",
 ]
 
 
@@ -55,6 +56,31 @@ def _mask(n: int, rows: NDArray[np.int64]) -> NDArray[np.bool_]:
 def uniform_mask(n: int, k: int) -> NDArray[np.bool_]:
     """Bool mask of :func:`uniform_indices`."""
     return _mask(int(n), uniform_indices(n, k))
+
+
+def distance_uniform_mask(positions: Any, k: int) -> NDArray[np.bool_] | None:
+    """Frames evenly spaced along the travelled distance: the frame nearest each of K points
+    spaced evenly from the first to the last position (``positions`` [N, 2|3] metres, NaN rows
+    unknown: they carry the last known distance; ties: the earlier frame). Where the drive
+    jumped two points can share their nearest frame, so the map may hold fewer than K frames.
+    None when there is no travelled distance."""
+    pos = np.asarray(positions, dtype=np.float64)
+    n, k = _check(len(pos), k)
+    rows = np.flatnonzero(np.all(np.isfinite(pos), axis=1))
+    if rows.size < 2 or k == 0:
+        return None
+    s_known = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos[rows], axis=0), axis=1))])
+    if s_known[-1] <= 0:
+        return None
+    where = np.searchsorted(rows, np.arange(n), side="right") - 1
+    s = np.where(where >= 0, s_known[np.clip(where, 0, None)], 0.0)  # non-decreasing
+    targets = np.linspace(0.0, float(s_known[-1]), k)
+    right = np.clip(np.searchsorted(s, targets, side="left"), 0, n - 1)
+    left = np.clip(right - 1, 0, n - 1)
+    # the first frame at the nearer distance (s is non-decreasing: the leftmost frame of a run)
+    near = np.where(np.abs(s[left] - targets) <= np.abs(s[right] - targets), left, right)
+    near = np.searchsorted(s, s[near], side="left")
+    return _mask(n, near.astype(np.int64))
 
 
 def random_indices(n: int, k: int, seed: int) -> NDArray[np.int64]:

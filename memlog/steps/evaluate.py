@@ -38,6 +38,14 @@ from memlog.descriptors.base import Describer
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import DESCRIBERS, make_describer
 from memlog.descriptors.search import match, time_per_query
+from memlog.descriptors.sequence import (
+    SequenceConfig,
+    drive_coordinates,
+    drive_runs,
+    match_sequences,
+    reference_unit,
+    resolve_coordinate,
+)
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import Whitening
 from memlog.errors import ConfigError, EvaluationError, MemlogError
@@ -59,8 +67,8 @@ from memlog.outputs.descriptor_table import read_cached, read_descriptors, write
 from memlog.outputs.results import write_results
 from memlog.progress import info
 from memlog.scoring.config import ScoreConfig
-from memlog.selection import ScoreTable, random_masks, uniform_mask
-from memlog.selection.config import SelectionConfig
+from memlog.selection import ScoreTable, distance_uniform_mask, random_masks, uniform_mask
+from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.selection.paper import first_failing
 from memlog.steps.map import MapConfig, make_map, score_table
 from memlog.steps.score import score
@@ -83,6 +91,11 @@ class EvaluateConfig:
     candidates per query; ``seeds``: random baselines; ``paper_discarded``: how the paper
     protocol counts a query whose best match was discarded; ``reference_topic`` /
     ``query_topic``: camera topics (default: the first); ``report``: write report.html.
+    ``candidates``: the memorable map is the one ``memlog map --candidates`` writes with these
+    settings (its exact selection, ``candidates="all"``, is reported beside it as
+    ``memorable_exact``). ``sequence``: how query frames are matched (the localize step's
+    default: sequences; ``length`` 0: single frames); every map is also evaluated frame by frame
+    (``single_frame`` in each row) when sequences are on.
     """
 
     score: ScoreConfig = field(default_factory=ScoreConfig)
@@ -99,8 +112,13 @@ class EvaluateConfig:
     reference_topic: str | None = None
     query_topic: str | None = None
     report: bool = True
+    candidates: int | Literal["all"] = DEFAULT_CANDIDATES
+    sequence: SequenceConfig = SequenceConfig()
 
     def __post_init__(self) -> None:
+        if not isinstance(self.sequence, SequenceConfig):
+            raise ConfigError(f"sequence must be a SequenceConfig, got {self.sequence!r}")
+        MapConfig(candidates=self.candidates)  # checks the value
         names = self.descriptors
         bad = [n for n in names if n != AUTO and n not in DESCRIBERS]
         if bad or not names or len(set(names)) != len(names):
@@ -123,7 +141,9 @@ class EvaluateConfig:
 
     def options(self) -> dict[str, Any]:
         """The settings other than scoring and selection, JSON-ready."""
-        out = {k: v for k, v in asdict(self).items() if k not in ("score", "select", "window", "query_window")}
+        out = {k: v for k, v in asdict(self).items()
+               if k not in ("score", "select", "window", "query_window", "sequence")}
+        out["sequence"] = self.sequence.to_dict()
         out["window"] = self.window.to_dict()
         out["query_window"] = self.query_window.to_dict() if self.query_window else None
         return out
@@ -147,19 +167,72 @@ def _proto(r: ProtocolResult) -> dict[str, Any]:
             "coverage": r.coverage}
 
 
-def _evaluate_mask(ref: np.ndarray, q: np.ndarray, truth: list[set[int]], mask: np.ndarray,
-                   full_idx: np.ndarray, full_sim: np.ndarray, cfg: EvaluateConfig
-                   ) -> tuple[dict[str, Any], ProtocolResult, ProtocolResult]:
-    k = min(cfg.k, max(1, int(mask.sum())))
-    ns = tuple(n for n in (1, 5, 10) if n <= max(k, 1))
-    idx, sim = match(q, ref, k=max(ns), ref_mask=mask)
-    mo = evaluate_map_only((idx, sim), truth, mask, ns=ns)
-    po = evaluate_paper((full_idx[:, : max(ns)], full_sim[:, : max(ns)]), truth, mask, ns=ns,
-                        discarded=cfg.paper_discarded)
-    timing = time_per_query(q, ref, repeats=3, ref_mask=mask, max_queries=50)
-    out = {"frames": int(mask.sum()), **_proto(mo), "match_seconds_per_query": timing.seconds_per_query,
-           "paper_protocol": _proto(po)}
-    return out, mo, po
+class _Matching:
+    """How the query drive is matched against a map (a mask over the reference rows): as
+    sequences (the default, :mod:`memlog.descriptors.sequence`) or frame by frame. ``ranked``
+    gives the best places with the confidence the PR curves use in column 0 (the margin for
+    sequences, the similarity for single frames)."""
+
+    def __init__(self, q_t: DescriptorTable, ref_t: DescriptorTable, q: np.ndarray, ref: np.ndarray,
+                 cfg: EvaluateConfig) -> None:
+        self.q, self.ref, self.cfg = q, ref, cfg
+        self.seq = cfg.sequence
+        self.sequence = self.seq.enabled
+        self.info: dict[str, Any] = {"matching": "sequence" if self.sequence else "single frame"}
+        if self.sequence:
+            self.coordinate, note = resolve_coordinate(self.seq.coordinate, q_t, ref_t)
+            self.qc = drive_coordinates(q_t, self.coordinate)
+            self.rc = drive_coordinates(ref_t, self.coordinate)
+            self.runs, gap = drive_runs(q_t, self.seq.max_gap_s)
+            self.unit = reference_unit(ref_t, self.rc)
+            self.info.update({"sequence": self.seq.to_dict(), "coordinate": self.coordinate,
+                              "coordinate_note": note, "max_gap_s": gap})
+        self._full: dict[bool, tuple[np.ndarray, np.ndarray]] = {}
+
+    def ranked(self, mask: np.ndarray | None, k: int, sequence: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(indices [Q, k], confidence-first scores [Q, k]) of the map ``mask`` (None: every row)."""
+        seq = self.sequence if sequence is None else sequence
+        if mask is None and k <= self.cfg.k and seq in self._full:
+            idx, sc = self._full[seq]
+            return idx[:, :k], sc[:, :k]
+        if not seq:
+            idx, sim = match(self.q, self.ref, k=k, ref_mask=mask)
+            out = (idx, sim.astype(np.float64))
+        else:
+            sm = match_sequences(self.q, self.qc, self.ref, self.rc, self.seq, k=k, ref_mask=mask, runs=self.runs,
+                                 ref_unit=self.unit, coordinate=self.coordinate)
+            sc = sm.scores.copy()
+            sc[:, 0] = sm.confidence
+            if "fallback" not in self.info and sm.info.get("fallback"):
+                self.info["fallback"] = sm.info["fallback"]
+            self.info.setdefault("sequence_queries", int(sm.sequence.sum()))
+            out = (sm.indices, sc)
+        if mask is None and k == self.cfg.k:
+            self._full[seq] = out
+        return out
+
+    def evaluate(self, truth: list[set[int]], mask: np.ndarray, sequence: bool | None = None
+                 ) -> tuple[dict[str, Any], ProtocolResult, ProtocolResult]:
+        """Both protocols for the map ``mask``: map-only (only its frames are searched) and the
+        paper's (every reference frame searched, a best match outside the map is no match)."""
+        cfg = self.cfg
+        seq = self.sequence if sequence is None else sequence
+        k = min(cfg.k, max(1, int(mask.sum())))
+        ns = tuple(n for n in (1, 5, 10) if n <= max(k, 1))
+        t0 = time.perf_counter()
+        idx, sc = self.ranked(mask, max(ns), seq)
+        seconds = (time.perf_counter() - t0) / max(1, len(self.q))
+        mo = evaluate_map_only((idx, sc), truth, mask, ns=ns)
+        full_idx, full_sc = self.ranked(None, cfg.k, seq)
+        po = evaluate_paper((full_idx[:, : max(ns)], full_sc[:, : max(ns)]), truth, mask, ns=ns,
+                            discarded=cfg.paper_discarded)
+        if not seq:  # the search alone, repeated (the sequence time above is one pass)
+            seconds = time_per_query(self.q, self.ref, repeats=3, ref_mask=mask, max_queries=50).seconds_per_query
+        out = {"frames": int(mask.sum()), **_proto(mo), "match_seconds_per_query": seconds,
+               "paper_protocol": _proto(po)}
+        if seq and sequence is None:
+            out["single_frame"] = self.evaluate(truth, mask, sequence=False)[0]
+        return out, mo, po
 
 
 def _rows_for(table: DescriptorTable, n_frames: int) -> np.ndarray:
@@ -338,7 +411,7 @@ def evaluate(
         map_path = out / ("map.mcap" if len(kinds) == 1 else f"map.{kind}.mcap")
         map_res = make_map(reference, map_path,
                            MapConfig(score=score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=kind,
-                                     whiten=cfg.whiten),
+                                     whiten=cfg.whiten, candidates=cfg.candidates),
                            scores=in_window,
                            known_descriptors={(ref_topic, int(i)): ref_t.descriptors[r]
                                               for r, i in enumerate(ref_t.frame_index)})
@@ -349,44 +422,55 @@ def evaluate(
         ref_d = whitening.apply(ref_t.descriptors) if whitening is not None else ref_t.descriptors
         q_d = whitening.apply(q_t.descriptors) if whitening is not None else q_t.descriptors
 
-        # 5. variants under both protocols
-        full_idx, full_sim = match(q_d, ref_d, k=cfg.k)
+        # 5. variants under both protocols, matched as the localize step does (and frame by frame)
+        matching = _Matching(q_t, ref_t, q_d, ref_d, cfg)
         res: dict[str, Any] = {"descriptor": choice.to_dict(), "describer": describer.meta().to_dict(),
-                               "whitening": map_res.whitening}
+                               "whitening": map_res.whitening, "matching": matching.info}
         per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
         kk = int(mask.sum())
         variants = {"full": np.ones(len(ref_t), bool), "memorable": mask, "uniform": uniform_mask(len(ref_t), kk)}
+        exact = None
+        if cfg.select.mode == "segment" and cfg.candidates != "all" and map_res.tables.get(ref_topic) is not None:
+            exact = cfg.select.run(map_res.tables[ref_topic], ms_bound="one" if score_cfg.normalize == "static" else "ss")
+            variants["memorable_exact"] = np.isin(ref_t.frame_index, exact.kept_indices)
+        if "x" in ref_t.positions or "lat" in ref_t.positions:
+            pos = _local_positions(ref_t)
+            by_distance = distance_uniform_mask(pos, kk) if pos is not None else None
+            if by_distance is not None:
+                variants["uniform_distance"] = by_distance
         for name, m in variants.items():
-            r, mo, po = _evaluate_mask(ref_d, q_d, truth_rows, m, full_idx, full_sim, cfg)
+            r, mo, po = matching.evaluate(truth_rows, m)
             res[name] = r
             per_variant[name] = (mo, po)
         if whitening is not None:
-            raw_idx, raw_sim = match(q_t.descriptors, ref_t.descriptors, k=cfg.k)
-            res["full_unwhitened"] = _evaluate_mask(ref_t.descriptors, q_t.descriptors, truth_rows,
-                                                    variants["full"], raw_idx, raw_sim, cfg)[0]
+            raw = _Matching(q_t, ref_t, q_t.descriptors, ref_t.descriptors, cfg)
+            res["full_unwhitened"] = raw.evaluate(truth_rows, variants["full"])[0]
         res["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
-                                 "select": cfg.select.mode,
-                                 "keep_fraction": cfg.select.keep_fraction, "gaps": len(sel.gaps)})
-        rand = [_evaluate_mask(ref_d, q_d, truth_rows, m, full_idx, full_sim, cfg)[0]
-                for m in random_masks(len(ref_t), kk, range(cfg.seeds))]
+                                 "select": cfg.select.mode, "candidates": cfg.candidates,
+                                 "keep_fraction": cfg.select.keep_fraction, "gaps": len(sel.gaps),
+                                 "segments": sel.info.get("by"), "still_frames": sel.info.get("still_frames")})
+        if exact is not None:
+            res["memorable_exact"]["kept_indices"] = exact.kept_indices.tolist()
+        res["uniform"]["note"] = "every k-th frame: evenly spaced frame indices, as many as the memorable map"
+        rand = [matching.evaluate(truth_rows, m)[0] for m in random_masks(len(ref_t), kk, range(cfg.seeds))]
         res["random"] = _mean_std(rand)
         by_kind[kind] = res
         if main is None:
-            main = (choice, describer, ref_t, q_d, ref_d, truth_rows, full_idx, full_sim, table, sel, per_variant,
-                    map_res, truth_src)
+            main = (choice, describer, ref_t, matching, truth_rows, table, sel, per_variant, map_res, truth_src)
 
     assert main is not None
-    (choice, describer, ref_t, q_d, ref_d, truth_rows, full_idx, full_sim, table, sel, per_variant, map_res,
-     truth_src) = main
+    (choice, describer, ref_t, matching, truth_rows, table, sel, per_variant, map_res, truth_src) = main
     first = by_kind[choice.chosen]
-    for name in ("full", "memorable", "uniform", "random"):
-        results[name] = first[name]
+    for name in ("full", "memorable", "memorable_exact", "uniform", "uniform_distance", "random"):
+        if name in first:
+            results[name] = first[name]
+    results["matching"] = first["matching"]
     results["descriptor"] = choice.to_dict()
     results["whitening"] = first["whitening"]
     results["descriptors"] = by_kind
 
     # 6. sweeps, contribution, size and time (main descriptor)
-    results["sweeps"] = _sweeps(table, ref_d, q_d, truth_rows, full_idx, full_sim, cfg)
+    results["sweeps"] = _sweeps(table, matching, truth_rows, cfg)
     th = sel.thresholds if cfg.select.mode == "paper" and sel.thresholds else cfg.select.thresholds
     results["criterion_contribution"] = _contribution(table, per_variant["full"][0], th)
     results["map_size"] = map_res.to_dict()
@@ -448,6 +532,22 @@ def _position_truth(ref_t: DescriptorTable, q_t: DescriptorTable, tol_m: float) 
     return by_frame
 
 
+def _local_positions(t: DescriptorTable) -> np.ndarray | None:
+    """The table's positions in metres ([N, 2]; geographic ones projected about their mean)."""
+    from memlog.io.positions import geo_origin, geo_to_local
+
+    p = t.positions
+    if "x" in p:
+        return np.stack([p["x"], p["y"]], axis=1)
+    if "lat" in p:
+        ll = np.stack([p["lat"], p["lon"]], axis=1)
+        ok = np.all(np.isfinite(ll), axis=1)
+        if not ok.any():
+            return None
+        return np.asarray(geo_to_local(ll, geo_origin(ll[ok])), dtype=np.float64)
+    return None
+
+
 def _mean_std(rows: list[dict[str, Any]]) -> dict[str, Any]:
     def agg(key_path: tuple[str, ...]) -> tuple[float, float]:
         vals = []
@@ -460,6 +560,8 @@ def _mean_std(rows: list[dict[str, Any]]) -> dict[str, Any]:
         return float(np.nanmean(a)), float(np.nanstd(a))
 
     out: dict[str, Any] = {"frames": rows[0]["frames"], "seeds": len(rows), "std": {}}
+    if "single_frame" in rows[0]:
+        out["single_frame"] = _mean_std([r["single_frame"] for r in rows])
     for key in ("coverage", "auc", "recall@1", "recall@5", "recall@10", "precision@100%recall",
                 "match_seconds_per_query"):
         if rows[0].get(key) is None:
@@ -476,9 +578,11 @@ def _mean_std(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def _sweeps(table: ScoreTable, ref_d: np.ndarray, q_d: np.ndarray, truth_rows: list[set[int]],
-            full_idx: np.ndarray, full_sim: np.ndarray, cfg: EvaluateConfig) -> dict[str, list[dict[str, Any]]]:
-    """The paper's sweeps: each threshold from 0 to 1 by 0.1 with the other two at 0."""
+def _sweeps(table: ScoreTable, matching: _Matching, truth_rows: list[set[int]],
+            cfg: EvaluateConfig) -> dict[str, list[dict[str, Any]]]:
+    """The paper's sweeps: each threshold from 0 to 1 by 0.1 with the other two at 0 (matched
+    as the main results are)."""
+    full_idx, full_sim = matching.ranked(None, cfg.k)
     out: dict[str, list[dict[str, Any]]] = {}
     for name in ("mt", "st", "et"):
         rows = []
@@ -488,7 +592,7 @@ def _sweeps(table: ScoreTable, ref_d: np.ndarray, q_d: np.ndarray, truth_rows: l
             row: dict[str, Any] = {"threshold": v, "frames": int(keep.sum())}
             if keep.any():
                 ns = (1,)
-                idx, sim = match(q_d, ref_d, k=1, ref_mask=keep)
+                idx, sim = matching.ranked(keep, 1)
                 mo = evaluate_map_only((idx, sim), truth_rows, keep, ns=ns)
                 po = evaluate_paper((full_idx[:, :1], full_sim[:, :1]), truth_rows, keep, ns=ns,
                                     discarded=cfg.paper_discarded)

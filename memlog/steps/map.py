@@ -142,6 +142,7 @@ class MapResult:
     crops_full: int | None = None
     descriptor: DescriptorChoice | None = None
     whitening: dict[str, Any] | None = None
+    tables: dict[str, ScoreTable] = field(default_factory=dict)  # what each topic was selected from
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -255,8 +256,10 @@ def _stageable(cfg: MapConfig) -> bool:
 
 def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topic: Records,
                 track: PositionTrack | None, looks: Looks | None,
-                ds_by_topic: dict[str, dict[int, float]] | None = None) -> dict[str, Selection]:
-    """Select once per topic from the score records (and the frames' looks when selection needs them)."""
+                ds_by_topic: dict[str, dict[int, float]] | None = None,
+                tables: dict[str, ScoreTable] | None = None) -> dict[str, Selection]:
+    """Select once per topic from the score records (and the frames' looks when selection needs
+    them); ``tables`` receives each topic's ScoreTable."""
     selections: dict[str, Selection] = {}
     for t in cams:
         recs = recs_by_topic.get(t, [])
@@ -274,6 +277,8 @@ def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topi
             reader.warn(f"{reader.path}: topic {t}: {left_out} frame(s) left out of the selection "
                         "(they did not decode; see the warnings above)")
         selections[t] = cfg.select.run(table, shortlist=_shortlist(cfg), ms_bound=_ms_bound(cfg))
+        if tables is not None:
+            tables[t] = table
     return selections
 
 
@@ -440,8 +445,9 @@ def make_map(
             ds_by_topic, known, whitening = drive_distinctiveness(
                 reader, cams, describer, whiten=cfg.whiten, whiten_dim=cfg.whiten_dim, config=sel_cfg.distinct_config(),
                 indices={t: {r["frame_index"] for r in recs_by_topic.get(t, [])} for t in cams}, known=known)
+        tables: dict[str, ScoreTable] = {}
         selections = _selections(reader, cfg, cams, recs_by_topic, track, looks,
-                                 ds_by_topic if sel_cfg.needs_distinctiveness else None)
+                                 ds_by_topic if sel_cfg.needs_distinctiveness else None, tables)
         kept = {t: {int(i) for i in s.index[s.keep]} for t, s in selections.items()}
         n_in = sum(len(s.index) for s in selections.values())
         n_kept = sum(len(k) for k in kept.values())
@@ -483,7 +489,8 @@ def make_map(
                 bytes_kept += len(item.raw.data)
                 w.write_frame(frame, item.raw, score_recs[frame.topic].get(frame.index))
             result = MapResult(Path(output), None, selections, n_in, n_kept, bytes_in, 0, dict(thresholds),
-                               report=reader.report, crops_run=crops[0], crops_full=crops[1], descriptor=choice)
+                               report=reader.report, crops_run=crops[0], crops_full=crops[1], descriptor=choice,
+                               tables=tables)
             described = None
             if describing is not None:
                 described = describing.result(source=f"{reader.path} ({', '.join(cams)})")
