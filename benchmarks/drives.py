@@ -14,6 +14,8 @@ stamps. A *variant* is a list of source places, one per output frame, with a sta
 ``double-rate``     every place twice (the repeat with sensor noise), 20 Hz
 ``mixed``           a stop of 30 frames at 100, places 200-399 every 2nd, 450-549 each twice (half
                     speed), 600-749 every 3rd, a stop of 30 frames at 780, 10 Hz
+``recorded``        like a recorded drive: standing 60 frames at the start and the end, stops of
+                    60 and 40 frames, crawls at a third of the speed, stretches at 2x and 3x, 10 Hz
 ==================  ==============================================================================
 
 Sensor noise: Gaussian, sigma 2 grey levels (of 255), on the decoded frame, re-encoded as PNG
@@ -118,6 +120,10 @@ def _segments(parts: Sequence[tuple[str, int, int, int]], n: int) -> tuple[list[
             for p in range(a, min(b, n)):
                 places += [p, p]
                 noisy += [False, True]
+        elif kind == "slow":  # each place ``step`` times: a crawl at 1/step of the speed
+            for p in range(a, min(b, n)):
+                places += [p] * step
+                noisy += [False] + [True] * (step - 1)
         else:
             raise ValueError(kind)
     return places, noisy
@@ -163,10 +169,19 @@ def _mixed(n: int) -> Variant:
                                        "stop 30 at 780, 10 Hz")
 
 
+def _recorded(n: int) -> Variant:
+    p, z = _segments([("stop", 0, 0, 60), ("walk", 1, 120, 1), ("slow", 120, 180, 3), ("stop", 179, 0, 60),
+                      ("walk", 180, 300, 2), ("walk", 300, 421, 1), ("stop", 420, 0, 40), ("walk", 421, 600, 3),
+                      ("slow", 600, 650, 3), ("walk", 650, n, 1), ("stop", n - 1, 0, 60)], n)
+    return _at_rate("recorded", p, z, HZ, "like a recorded drive: standing 60 frames at the start and the end, "
+                                          "a stop of 60 at 179 and 40 at 420, crawls at 1/3 speed (120-179, "
+                                          "600-649), fast stretches (180-299 every 2nd, 421-599 every 3rd), 10 Hz")
+
+
 #: The variants by name (each a function of the number of source places).
 VARIANTS: dict[str, Callable[[int], Variant]] = {
     "base": _base, "fast": _fast, "stops": _stops, "half-rate": _half_rate, "double-rate": _double_rate,
-    "mixed": _mixed,
+    "mixed": _mixed, "recorded": _recorded,
 }
 
 

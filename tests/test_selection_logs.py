@@ -39,7 +39,8 @@ def _kept(path: Path, topic: str) -> list[int]:
 def test_segments_by_distance_keep_one_frame_per_stretch(tmp_path: Path) -> None:
     ms = [0.9, 0.1, 0.2, 0.8, 0.3, 0.95, 0.4, 0.6]
     recs = _records(DEMO, COMP, ms)
-    cfg = MapConfig(select=SelectionConfig(keep_fraction=0.5, segment_by="distance"), topics=(COMP,), descriptor=None)
+    cfg = MapConfig(select=SelectionConfig(keep_fraction=0.5, segment_by="distance"), topics=(COMP,), descriptor=None,
+                    candidates="all")  # the exact choice: MS decides between the frames of a stretch
     res = make_map(DEMO, tmp_path / "m.mcap", cfg, scores=recs)
     kept = _kept(tmp_path / "m.mcap", COMP)
     info = res.selections[COMP].info
@@ -61,7 +62,8 @@ def test_segments_by_distance_keep_one_frame_per_stretch(tmp_path: Path) -> None
 
 def test_segments_by_time(tmp_path: Path) -> None:
     recs = _records(DEMO, COMP, [0.5 + 0.05 * i for i in range(8)])
-    cfg = MapConfig(select=SelectionConfig(segment_by="time", spacing_s=0.4), topics=(COMP,), descriptor=None)
+    cfg = MapConfig(select=SelectionConfig(segment_by="time", spacing_s=0.4), topics=(COMP,), descriptor=None,
+                    candidates="all")  # the exact choice: MS decides
     make_map(DEMO, tmp_path / "m.mcap", cfg, scores=recs)
     kept = _kept(tmp_path / "m.mcap", COMP)
     # frames every 0.1 s: windows [0,0.4) and [0.4,0.8): the best (latest, highest MS) of each

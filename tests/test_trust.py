@@ -232,15 +232,18 @@ def test_a_model_failure_stops_the_run_and_is_not_damage(tmp_path: Path, monkeyp
     assert not (tmp_path / "s.mcap").exists() and list(tmp_path.iterdir()) == []
 
 
-def test_no_report_removes_a_stale_report(tmp_path: Path) -> None:
+def test_a_failed_evaluate_keeps_the_previous_results_and_report(tmp_path: Path) -> None:
+    """results.json and report.html of an earlier run stay as they were when a run fails (they are
+    replaced only by a run that finished)."""
     from memlog.steps import evaluate as ev
 
     out = tmp_path / "out"
     out.mkdir()
-    (out / "report.html").write_text("old")
+    (out / "report.html").write_text("old report")
+    (out / "results.json").write_text('{"old": true}')
     truth = tmp_path / "t.json"
     truth.write_text(json.dumps({"matches": [[i] for i in range(8)]}))
-    # stop right after the checks: the stale report must already be gone
+
     class Stop(Exception):
         pass
 
@@ -255,7 +258,8 @@ def test_no_report_removes_a_stale_report(tmp_path: Path) -> None:
                         truth=truth)
     finally:
         ev.score = orig
-    assert not (out / "report.html").exists()
+    assert (out / "report.html").read_text() == "old report"
+    assert (out / "results.json").read_text() == '{"old": true}'
 
 
 # -- the test command on a clone without the shared data ----------------------------------------------
@@ -279,6 +283,7 @@ def test_evaluate_metrics_describe_the_map_written(tmp_path: Path) -> None:
     truth.write_text(json.dumps({"matches": [[i] for i in range(8)]}))
     scored = tmp_path / "out" / "reference.scored.mcap"
     (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "report.html").write_text("a report of an earlier run")
     score(DEMO, scored, ScoreConfig(all_scores=True), FrameWindow((COMP,)))
     res = evaluate(DEMO, DEMO, tmp_path / "out", EvaluateConfig(
         select=SelectionConfig(keep_fraction=0.5, dedup=0.3), reference_topic=COMP, query_topic=RAW, seeds=2,
@@ -287,3 +292,4 @@ def test_evaluate_metrics_describe_the_map_written(tmp_path: Path) -> None:
     assert res["memorable"]["frames"] == len(kept)
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
     assert sorted(kept.tolist()) == saved["memorable"]["kept_indices"]
+    assert not (tmp_path / "out" / "report.html").exists()  # --no-report: no stale report beside new results

@@ -77,7 +77,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -118,6 +118,7 @@ PAIRING = "mutual"  # "mutual": map frames along the path meet their nearest que
 SCORE_NORM = "sqrt"  # "sqrt": sum of z over sqrt(pairs), N(0, 1) without a match; "mean": the mean z
 PAIR_ELEMS = 1 << 21  # float32 elements per chunk of pair products (8 MiB)
 GAP_FACTOR = 10.0  # default run boundary: a stamp gap above this many median frame intervals
+MAX_LENGTH_SCALE = 2.0  # scale_length: a window grows at most 2x on a sparse map
 
 
 @dataclass(frozen=True)
@@ -134,7 +135,12 @@ class SequenceConfig:
     half-width, in reference frames, of the window around the best place inside which no
     second-best place is taken (the margin's "different place"). ``normalize``: contrast
     normalisation of the similarities. ``block``: query frames per block of votes (speed and
-    memory only; never the result).
+    memory only; never the result). ``scale_length``: on a sparse map (the kept frames' median
+    spacing ``s`` reference frames, a half map ``s = 2``) the window is ``length * s`` frames
+    (at most :data:`MAX_LENGTH_SCALE` times), so a sequence meets as many map frames as on the
+    full map (Nordland, winter against summer, +-10 frames, full map R@1 0.723: the map of every
+    2nd frame 0.655 -> 0.739 with +-20, the other half 0.653 -> 0.669, every 4th frame 0.410 ->
+    0.430 with +-20; windows of 4x were worse on drives that change speed; ``info["length_used"]``).
     """
 
     length: int = 10
@@ -148,6 +154,7 @@ class SequenceConfig:
     exclude: float = 1.0
     normalize: bool = True
     block: int = 128
+    scale_length: bool = True
 
     def __post_init__(self) -> None:
         check_ints(self, {"length": 0, "candidates": 1, "block": 1})
@@ -173,6 +180,8 @@ class SequenceConfig:
         if isinstance(self.exclude, bool) or not isinstance(self.exclude, (int, float)) or not (
                 math.isfinite(self.exclude) and self.exclude >= 0):
             raise ConfigError(f"exclude must be a number >= 0, got {self.exclude!r}")
+        if not isinstance(self.scale_length, bool):
+            raise ConfigError("scale_length must be true or false")
         if self.length == 0 and self.causal:
             raise ConfigError("causal needs a sequence: length (--sequence) must be >= 1")
 
@@ -718,6 +727,14 @@ def match_sequences(
 
     rc_db = rc_all if db.index is None else rc_all[db.index]
     order = np.argsort(rc_db, kind="stable")
+    if cfg.enabled and cfg.scale_length and n_m > 1:
+        # a sparse map (every 2nd, 4th... frame kept) has fewer frames along a window of query
+        # frames: the window grows with the map's spacing so a sequence gathers as much evidence
+        unit0 = float(ref_unit) if ref_unit else _median_step(np.sort(rc_all))
+        spacing0 = _median_step(rc_db[order])
+        scale = min(MAX_LENGTH_SCALE, max(1.0, spacing0 / unit0)) if unit0 > 0 else 1.0
+        cfg = replace(cfg, length=int(round(cfg.length * scale)))
+        info["length_used"] = cfg.length
     full_row = order if db.index is None else db.index[order]
     full_row = full_row.astype(np.int64)
     sorted_of_full = np.full(max(n_ref, 1), -1, dtype=np.int64)

@@ -95,6 +95,11 @@ def load_detector(device: str = "auto") -> Any:
     from memlog.models.runtime import detector_backend
 
     pb, pbtxt = locate_detector_files()
+    if not hasattr(cv2.dnn, "readNetFromTensorflow"):
+        raise ModelError(
+            f"OpenCV {cv2.__version__} cannot read the detector's TensorFlow graph (OpenCV 5 dropped "
+            "that importer): run `pip install 'opencv-python-headless>=4.8,<5'`"
+        )
     used, backend, target = detector_backend(device)
     try:
         net = cv2.dnn.readNetFromTensorflow(str(pb), str(pbtxt))

@@ -36,8 +36,10 @@ class SelectionConfig:
     config's). ``spacing_m``/``spacing_s``: segment mode, one frame per metres / seconds.
     ``segment_by``: how segments are cut. ``dedup``: drop a kept frame within this cosine
     distance of an already kept one (descriptor: the thumbnail). ``min_ss``/``min_ms``/``min_es``,
-    ``weights``, ``combine``, ``view_distance``: segment mode's tuning (defaults:
+    ``weights``, ``combine``, ``still_distance``: segment mode's tuning (defaults:
     :data:`~memlog.selection.segment.SEGMENT_DEFAULTS`, chosen on the shared Nordland slice).
+    ``view_distance`` (with ``segment_by="view"`` and no size): a new segment where the view moved
+    this far (cosine distance) from the segment's first frame, instead of ``keep_fraction``.
 
     Distinctiveness (:mod:`memlog.selection.distinctiveness`), a fourth criterion computed from
     the reference drive's (whitened) descriptors: ``dt`` is its threshold in paper mode (keep
@@ -60,7 +62,7 @@ class SelectionConfig:
     min_es: float = SEGMENT_DEFAULTS.min_es
     weights: tuple[float, float, float] = SEGMENT_DEFAULTS.weights
     combine: Literal["geometric", "rank"] = SEGMENT_DEFAULTS.combine
-    view_distance: float = SEGMENT_DEFAULTS.view_distance
+    view_distance: float | None = None
     still_distance: float = SEGMENT_DEFAULTS.still_distance
     dt: float | None = None
     distinct_weight: float = SEGMENT_DEFAULTS.distinct_weight
@@ -87,6 +89,9 @@ class SelectionConfig:
         sizes = [k for k in ("keep_fraction", "spacing_m", "spacing_s") if getattr(self, k) is not None]
         if len(sizes) > 1:
             raise ConfigError(f"give one of keep_fraction, spacing_m, spacing_s (got {', '.join(sizes)})")
+        if self.view_distance is not None and (self.segment_by != "view" or sizes):
+            raise ConfigError("view_distance sizes segments by view change: it needs segment_by='view' and no "
+                              "keep_fraction or spacing")
         if self.dedup is not None:
             RedundancyConfig(dup_distance=self.dedup)  # checks the range
         if self.dt is not None:
@@ -149,7 +154,8 @@ class SelectionConfig:
 
         kw: dict[str, Any] = {
             "by": self.segment_by, "min_ms": self.min_ms, "min_ss": self.min_ss, "min_es": self.min_es,
-            "weights": tuple(self.weights), "combine": self.combine, "view_distance": self.view_distance,
+            "weights": tuple(self.weights), "combine": self.combine,
+            "view_distance": SEGMENT_DEFAULTS.view_distance if self.view_distance is None else self.view_distance,
             "still_distance": self.still_distance,
             "distinct_weight": self.distinct_weight,
         }
@@ -159,7 +165,7 @@ class SelectionConfig:
             kw["spacing_m"] = self.spacing_m
         elif self.spacing_s is not None:
             kw["spacing_s"] = self.spacing_s
-        else:
+        elif self.view_distance is None or self.segment_by != "view":
             kw["keep_fraction"] = SEGMENT_DEFAULTS.keep_fraction
         SegmentConfig(**kw)
         return kw

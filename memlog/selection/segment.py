@@ -9,8 +9,9 @@ The drive is cut into consecutive place segments, by one of
 * ``"view"``: how much the view changed along the drive: the table's view vectors
   (``ScoreTable.view``, a 32 x 16 zero-mean thumbnail of every frame) give each step from one
   frame to the next its chord length ``sqrt(2 * cosine distance)`` (about proportional to how far
-  the camera moved for small steps), and the drive's total view change is split into equal parts
-  like a path length; without a size (``keep_fraction``) and with ``view_distance``, a new
+  the camera moved for small steps), capped at :data:`VIEW_STEP_CAP` (a sudden change of the
+  whole view is not a long way), and the drive's total view change is split into
+  equal parts like a path length; without a size (``keep_fraction``) and with ``view_distance``, a new
   segment starts instead when the distance to the segment's first frame's descriptor exceeds
   ``view_distance``.
 
@@ -364,6 +365,21 @@ def _bin_along(value: NDArray[np.float64], spacing: float | None, n_bins: int | 
     return np.zeros(len(value), dtype=np.int64), 0.0
 
 
+#: A step of view change counts at most this chord (cosine similarity 0.875 of consecutive view
+#: vectors): a sudden change of the whole view, a tunnel's mouth or a flash of light, is not a long
+#: way. Chosen on the Nordland drive variants (``benchmarks/drive_maps.py``: mean map-only R@1 of
+#: eight maps 0.551 uncapped, 0.578 capped at 0.5; a cap relative to the drive's median step did as
+#: well there but counts every step alike once more than half the drive crawls).
+VIEW_STEP_CAP = 0.5
+
+
+def _view_step(d: NDArray[np.float64]) -> NDArray[np.float64]:
+    """How far each step of view change ``d`` (cosine distance of consecutive view vectors) moves
+    along the drive: its chord ``sqrt(2 d)``, at most :data:`VIEW_STEP_CAP`."""
+    chord = np.sqrt(2.0 * np.clip(d, 0.0, None))
+    return np.asarray(np.minimum(chord, VIEW_STEP_CAP), dtype=np.float64)
+
+
 def _without_stops(coord: NDArray[np.float64], still: NDArray[np.bool_]) -> NDArray[np.float64]:
     """``coord`` with the steps into still rows removed (a stop lies at one place)."""
     if not still.any():
@@ -373,11 +389,16 @@ def _without_stops(coord: NDArray[np.float64], still: NDArray[np.bool_]) -> NDAr
 
 
 def _view_segments(table: ScoreTable, view_distance: float) -> NDArray[np.int64]:
-    """Segment ids by view change: new segment when 1 - <d_i, d_anchor> > view_distance."""
-    assert table.descriptors is not None
+    """Segment ids by view change: new segment when 1 - <d_i, d_anchor> > view_distance, with
+    ``d`` the view vectors (else the descriptors; blank rows unknown)."""
     n = table.n
-    d = table.descriptors
-    known = table.known_descriptors()
+    if table.view is not None:
+        d = table.view
+        known = np.linalg.norm(d.astype(np.float64), axis=1) > 0
+    else:
+        assert table.descriptors is not None
+        d = table.descriptors
+        known = table.known_descriptors()
     seg = np.zeros(n, dtype=np.int64)
     sid = 0
     anchor = -1  # row of the segment's first frame with a known descriptor
@@ -433,8 +454,9 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
     if by == "distance" and table.positions is None:
         raise ConfigError("segment by='distance' needs positions, but the score table has none")
     anchored = by == "view" and config.keep_fraction is None
-    if anchored and table.descriptors is None:
-        raise ConfigError("segment by='view' with view_distance needs descriptors, but the score table has none")
+    if anchored and table.descriptors is None and table.view is None:
+        raise ConfigError("segment by='view' with view_distance needs view vectors or descriptors, but the score "
+                          "table has neither")
     if by == "view" and not anchored and table.view is None:
         raise ConfigError("segment by='view' needs the frames' view vectors, but the score table has none")
     steps = table.view_steps()
@@ -478,7 +500,7 @@ def segment_ids(table: ScoreTable, config: SegmentConfig) -> tuple[NDArray[np.in
         info["view_distance"] = config.view_distance
     else:  # view change
         assert steps is not None
-        chord = np.sqrt(2.0 * np.nan_to_num(steps, nan=0.0))
+        chord = _view_step(np.nan_to_num(steps, nan=0.0))
         c = np.cumsum(np.where(still, 0.0, chord))
         raw, width = _bin_along(c, None, n_seg)
         info["view_change"] = float(c[-1])

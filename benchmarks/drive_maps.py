@@ -1,0 +1,218 @@
+#!/usr/bin/env python3
+"""Maps of drives that stop, crawl and speed up: memlog's selection against every k-th frame.
+
+    python benchmarks/drive_maps.py [--scores SCORED.mcap] [--tables maps candidates coordinate]
+
+Reference drives: variants of the shared Nordland summer drive (:mod:`benchmarks.drives`):
+``base`` (the drive as recorded; it already stands still at stations, e.g. frames 128-175),
+``stops``, ``mixed`` and ``recorded`` (standing at the start and the end, stops, crawls at a
+third of the speed, stretches at 2x and 3x). Query: the winter drive (``base``), truth by source
+place (+-1 place). Descriptors: the whitened thumbnail (memlog's ``auto`` for 64x32 frames),
+whitening fitted on the reference drive; every map is searched map-only (only its frames) and
+the query is matched as ``memlog localize`` matches it by default (sequences of +-10 frames,
+speeds 0..3) and frame by frame.
+
+Scores: a variant frame has the scores of its source frame (MS, SS, ES from ``--scores``, an
+annotated MCAP of the summer drive scored with ``memlog score --all-scores``; the variant's
+noise is 2 grey levels); its view vector (:func:`memlog.scoring.scorer.view_vector`) is computed
+from the variant frame itself, noise included, so stops are found from the images as ``memlog
+map`` finds them. Without ``--scores`` the MS column is missing and only the tables that do not
+need MS run.
+
+Maps (as many frames as ``--fractions`` of the drive's frames):
+
+* ``memlog``: the default selection (segments by view change, stops left out, the best of one
+  candidate per segment: ``memlog map`` with default settings);
+* ``memlog, time segments``: the same with segments by time (memlog's default before it
+  looked at the drive);
+* ``every k-th``: evenly spaced frame indices; ``random``: 20 seeds, mean +- std;
+* ``candidates`` table: K = 1, 2 and all (exact) candidates per segment (MS choosing between
+  them for K >= 2).
+
+Prints Markdown tables (R@1 / AUC-PR, map-only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from benchmarks import drives  # noqa: E402
+from benchmarks.sequence_table import SHARED, Drive, _describe, table, truth_sets, whiten  # noqa: E402
+
+REFERENCES = ["base", "stops", "mixed", "recorded"]
+QUERY = "base"
+GENERATOR = "2"
+
+
+def load(cache: Path) -> tuple[Drive, dict[str, Drive], dict[str, np.ndarray]]:
+    """(query, reference drives, view vectors of each reference drive's frames)."""
+    from memlog.io import open_log
+    from memlog.scoring.scorer import view_vector
+
+    cache.mkdir(parents=True, exist_ok=True)
+    out: dict[str, Drive] = {}
+    views: dict[str, np.ndarray] = {}
+    jobs = [("winter", QUERY, 100)] + [("summer", r, 200 + i) for i, r in enumerate(REFERENCES)]
+    query = None
+    for drive, name, seed in jobs:
+        v = drives.variant(name)
+        log = cache / f"g{GENERATOR}-nordland_{drive}_{name}.mcap"
+        if not log.is_file():
+            drives.write_variant(SHARED / drives.DRIVES[drive], v, log, positions=False, seed=seed)
+        d = Drive(_describe(log, cache), v)
+        if drive == "winter":
+            query = d
+            continue
+        out[name] = d
+        vpath = cache / f"{log.stem}.views.npy"
+        if not vpath.is_file():
+            with open_log(log) as r:
+                np.save(vpath, np.stack([view_vector(f.decode_bgr()) for f in r.frames()]).astype(np.float32))
+        views[name] = np.load(vpath)
+    assert query is not None
+    return query, out, views
+
+
+def source_scores(path: Path | None) -> dict[str, np.ndarray] | None:
+    """MS, SS, ES of every summer frame (by frame index = place) from an annotated MCAP."""
+    if path is None:
+        return None
+    from memlog.outputs.annotated import read_scores
+
+    recs = next(iter(read_scores(path).values()))
+    n = max(r["frame_index"] for r in recs) + 1
+    out = {k: np.full(n, np.nan) for k in ("ms", "ss", "es")}
+    for r in recs:
+        for k in out:
+            if r.get(k) is not None:
+                out[k][r["frame_index"]] = float(r[k])
+    return out
+
+
+def score_table(r: Drive, view: np.ndarray, scores: dict[str, np.ndarray] | None) -> Any:
+    from memlog.selection import ScoreTable
+
+    p = r.variant.places
+    nan = np.full(len(p), np.nan)
+    ms, ss, es = ((scores[k][p] for k in ("ms", "ss", "es")) if scores is not None else (nan, np.ones(len(p)), nan))
+    if scores is None:
+        es = np.ones(len(p))
+        ms = np.zeros(len(p))
+    return ScoreTable(index=np.arange(len(p)), t_ns=r.stamp_ns - r.stamp_ns[0], ms=ms, ss=ss, es=es, view=view)
+
+
+def r_at_1(q: Drive, r: Drive, mask: np.ndarray | None, seq: Any) -> tuple[float, float]:
+    from memlog.descriptors.sequence import match_sequences
+    from memlog.evaluation.metrics import pr_curve
+
+    qc, rc = q.frame_index.astype(np.float64), r.frame_index.astype(np.float64)
+    res = match_sequences(q.desc, qc, r.desc, rc, seq, k=1, ref_mask=mask, coordinate="frames", ref_unit=1.0)
+    truth = truth_sets(q, r)
+    best = res.indices[:, 0]
+    correct = np.array([b >= 0 and int(b) in s for b, s in zip(best, truth)])
+    curve = pr_curve(res.confidence, correct, np.array([bool(s) for s in truth]))
+    return float(correct.mean()), curve.auc
+
+
+def fmt(v: tuple[float, float]) -> str:
+    return f"{v[0]:.3f} / {v[1]:.3f}"
+
+
+def fmt_rand(vals: list[tuple[float, float]]) -> str:
+    a = np.asarray(vals)
+    return f"{a[:, 0].mean():.3f} ± {a[:, 0].std():.3f} / {a[:, 1].mean():.3f}"
+
+
+def matchers() -> dict[str, Any]:
+    from memlog.descriptors.sequence import SequenceConfig
+
+    return {"sequence": SequenceConfig(), "single": SequenceConfig(length=0)}
+
+
+def memlog_mask(t: Any, frac: float, shortlist: int | None = 1, **sel: Any) -> np.ndarray:
+    from memlog.selection.config import SelectionConfig
+
+    s = SelectionConfig(keep_fraction=frac, **sel).run(t, shortlist=shortlist)
+    return np.asarray(s.keep, dtype=bool)
+
+
+def tab_maps(q: Drive, refs: dict[str, Drive], views: dict[str, np.ndarray], scores: Any, fracs: list[float]) -> None:
+    from memlog.selection import random_masks, uniform_mask
+
+    for mname, seq in matchers().items():
+        rows = []
+        for rname, r in refs.items():
+            whiten(r, [q])
+            t = score_table(r, views[rname], scores)
+            full = r_at_1(q, r, None, seq)
+            for frac in fracs:
+                m = memlog_mask(t, frac)
+                k = int(m.sum())
+                mt = memlog_mask(t, frac, segment_by="time")
+                rand = [r_at_1(q, r, mm, seq) for mm in random_masks(len(r), k, range(20))]
+                rows.append([rname, len(r), f"{frac:g} ({k})", fmt(full), fmt(r_at_1(q, r, m, seq)),
+                             fmt(r_at_1(q, r, mt, seq)), fmt(r_at_1(q, r, uniform_mask(len(r), k), seq)),
+                             fmt_rand(rand), int(t.view_steps() is not None and (t.view_steps() < 0.001).sum())])
+        print(f"\n### Maps of drive variants, matched by {mname} (R@1 / AUC-PR, map-only; query: winter)\n")
+        print(table(rows, ["reference", "frames", "fraction (frames)", "full map", "memlog", "memlog, time segments",
+                           "every k-th", "random (20)", "still frames"]))
+
+
+def tab_candidates(q: Drive, refs: dict[str, Drive], views: dict[str, np.ndarray], scores: Any,
+                   fracs: list[float]) -> None:
+    if scores is None:
+        print("\n(candidates table: needs --scores)")
+        return
+    seq = matchers()["sequence"]
+    rows = []
+    for rname, r in refs.items():
+        whiten(r, [q])
+        t = score_table(r, views[rname], scores)
+        for frac in fracs:
+            cells = [fmt(r_at_1(q, r, memlog_mask(t, frac, shortlist=k), seq)) for k in (1, 2, None)]
+            no_ms = memlog_mask(t, frac, shortlist=None, weights=(0.0, 1.0, 1.0))
+            rows.append([rname, f"{frac:g}", *cells, fmt(r_at_1(q, r, no_ms, seq))])
+    print("\n### Does memorability help choose within a segment? (R@1 / AUC-PR, sequences, map-only)\n")
+    print(table(rows, ["reference", "fraction", "K = 1 (default)", "K = 2", "K = all (exact)",
+                       "exact without MS (SS, ES only)"]))
+
+
+def tab_stillness(refs: dict[str, Drive], views: dict[str, np.ndarray]) -> None:
+    rows = []
+    for rname, r in refs.items():
+        v = views[rname].astype(np.float64)
+        d = np.r_[np.inf, 1.0 - np.einsum("ij,ij->i", v[1:], v[:-1])]
+        repeat = np.r_[False, r.variant.places[1:] == r.variant.places[:-1]]
+        rows.append([rname, len(r), int(repeat.sum()), f"{np.percentile(d[repeat], 99) if repeat.any() else 0:.5f}",
+                     f"{np.percentile(d[~repeat][1:], 5):.4f}", int((d < 0.001).sum()), int(((d < 0.001) & ~repeat).sum())])
+    print("\n### Stops found from the images (view vectors, still below 0.001)\n")
+    print(table(rows, ["reference", "frames", "repeated frames (noise only)", "p99 distance, repeats",
+                       "p5 distance, moving", "still frames", "of them moving (real stops of the source drive)"]))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-drive-maps"))
+    ap.add_argument("--scores", type=Path, help="the summer drive scored with memlog score --all-scores")
+    ap.add_argument("--fractions", type=float, nargs="+", default=[0.5, 0.25])
+    ap.add_argument("--tables", nargs="+", default=["stillness", "maps", "candidates"])
+    a = ap.parse_args()
+    q, refs, views = load(a.cache)
+    scores = source_scores(a.scores)
+    for name in a.tables:
+        {"maps": lambda: tab_maps(q, refs, views, scores, a.fractions),
+         "candidates": lambda: tab_candidates(q, refs, views, scores, a.fractions),
+         "stillness": lambda: tab_stillness(refs, views)}[name]()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,166 @@
+"""Maps of drives that stop, crawl and speed up (issue 20), and evaluate's side-by-side matching.
+
+The drives are built from images: a camera slides along a textured strip (its position known in
+pixels), stands still (the same view with sensor noise) and changes speed; the view vectors come
+from :func:`memlog.scoring.scorer.view_vector` of each frame as ``memlog map`` computes them.
+Expectations are in the strip's own coordinate (where the camera was), not in memlog's.
+"""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from memlog.scoring.scorer import view_vector
+from memlog.selection import ScoreTable, select
+from memlog.selection.segment import SEGMENT_DEFAULTS
+from memlog.selection.baselines import distance_uniform_mask, uniform_mask
+from tests.conftest import shared
+
+W, H = 128, 64  # camera frame
+NOISE = 2.0  # grey levels of sensor noise
+
+
+def _strip(length: int, seed: int = 0) -> np.ndarray:
+    """A grey strip with texture at several scales (what a camera sliding along sees)."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros((H, length), np.float64)
+    for sigma, amp in ((2, 10.0), (6, 20.0), (16, 30.0)):
+        layer = cv2.GaussianBlur(rng.normal(size=(H, length)), (0, 0), sigma)
+        img += amp * layer / layer.std()
+    return np.clip(img + 128, 0, 255)
+
+
+def _drive(strip: np.ndarray, x: np.ndarray, seed: int = 1) -> np.ndarray:
+    """View vectors of the frames seen at strip positions ``x`` (pixels), each with its own noise."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for xi in x:
+        # the crop at sub-pixel position xi (bilinear), as a camera sees a scene moving by less than a pixel
+        crop = cv2.getRectSubPix(strip.astype(np.float32), (W, H), (float(xi) + (W - 1) / 2, (H - 1) / 2))
+        f = crop.astype(np.float64) + rng.normal(0, NOISE, size=(H, W))
+        out.append(view_vector(np.clip(f, 0, 255).astype(np.uint8)))
+    return np.asarray(out, np.float32)
+
+
+def _table(view: np.ndarray) -> ScoreTable:
+    n = len(view)
+    rng = np.random.default_rng(3)
+    return ScoreTable(index=np.arange(n), t_ns=np.arange(n, dtype=np.int64) * 50_000_000,  # 20 Hz
+                      ms=rng.uniform(0.6, 0.9, n), ss=np.ones(n), es=rng.uniform(0.4, 0.6, n), view=view)
+
+
+def test_a_stop_gets_one_map_frame_and_the_moving_drive_the_rest() -> None:
+    """Moving, standing 60 frames (sensor noise only), moving again: without positions the default
+    segments by view change, the stop is found from the images and holds at most one map frame;
+    segments by time (every k-th frame's share) spend several on it."""
+    strip = _strip(1200)
+    x = np.concatenate([np.arange(0, 300, 6.0), np.full(60, 300.0), np.arange(306, 606, 6.0)])
+    stop = np.flatnonzero(x == 300.0)
+    t = _table(_drive(strip, x))
+    sel = select(t, "segment", keep_fraction=0.1)
+    assert sel.info["by"] == "view"  # no positions: view change, chosen automatically
+    assert sel.info["still_frames"] == len(stop) - 1  # the frames after the first of the stop
+    kept = sel.kept_indices
+    assert len(kept) == round(0.1 * len(x)) and np.isin(kept, stop).sum() <= 1
+    # the map covers the moving drive evenly: no gap between kept places above twice the mean
+    gaps = np.diff(np.unique(x[kept]))
+    assert gaps.max() <= 2 * (x[-1] - x[0]) / len(kept), gaps
+    by_time = select(t, "segment", by="time", keep_fraction=0.1, still_distance=0.0)
+    assert np.isin(by_time.kept_indices, stop).sum() >= 3  # what a map that ignores the stop does
+
+
+def test_stops_are_found_from_the_images_not_from_time() -> None:
+    """A slow crawl (1 px per frame) is not a stop; a standing camera with sensor noise is."""
+    strip = _strip(600)
+    x = np.concatenate([np.arange(0, 100, 1.0), np.full(30, 100.0), np.arange(101, 201, 1.0)])
+    steps = _table(_drive(strip, x)).view_steps()
+    assert steps is not None
+    still = steps < SEGMENT_DEFAULTS.still_distance
+    want = np.zeros(len(x), bool)
+    want[np.flatnonzero(x == 100.0)[1:]] = True
+    assert still[1:].tolist() == want[1:].tolist()
+
+
+def test_a_crawl_gets_fewer_map_frames_than_every_kth_frame_gives_it() -> None:
+    """Creeping at 0.5 px per frame, then driving at 8 px per frame: a view-change map puts fewer
+    frames on the crawl than every k-th frame does (which follows the frame count). (The measure
+    saturates: steps of 1 px and more count alike, see ``VIEW_STEP_CAP``.)"""
+    strip = _strip(1500)
+    x = np.concatenate([np.arange(0, 50, 0.5), np.arange(50, 850, 8.0)])  # 100 crawl, 100 fast frames
+    t = _table(_drive(strip, x))
+    k = 20
+    sel = select(t, "segment", keep_fraction=k / len(x))
+    assert sel.info["still_frames"] == 0  # a crawl is not a stop
+    on_crawl = int((x[sel.kept_indices] < 50).sum())
+    every_kth = int((x[uniform_mask(len(x), k)] < 50).sum())
+    assert every_kth == k // 2 and on_crawl <= k // 4, (on_crawl, every_kth)
+
+
+def test_distance_uniform_mask_picks_the_frame_nearest_each_even_mark() -> None:
+    """Against a brute-force search over the travelled distance (variable speed, a stop, a NaN fix)."""
+    rng = np.random.default_rng(0)
+    step = np.concatenate([rng.uniform(0.5, 2.0, 40), np.zeros(20), rng.uniform(2.0, 4.0, 40)])
+    pos = np.zeros((len(step), 2))
+    pos[:, 0] = np.cumsum(step)
+    pos[:, 1] = 0.3 * np.sin(pos[:, 0] / 7)
+    pos[55] = np.nan  # an unknown fix carries the distance before it
+    for k in (5, 17, 33):
+        mask = distance_uniform_mask(pos, k)
+        assert mask is not None
+        s = np.zeros(len(pos))
+        last = 0.0
+        prev = pos[0]
+        for i in range(1, len(pos)):
+            if np.all(np.isfinite(pos[i])):
+                last += float(np.linalg.norm(pos[i] - prev))
+                prev = pos[i]
+            s[i] = last
+        want = set()
+        for target in np.linspace(0, s[-1], k):
+            d = np.abs(s - target)
+            want.add(int(np.flatnonzero(d == d.min())[0]))  # the earliest of the nearest frames
+        assert set(np.flatnonzero(mask).tolist()) == want, k
+    assert distance_uniform_mask(np.ones((10, 2)), 3) is None  # no travelled distance
+
+
+@pytest.fixture(scope="module")
+def nordland_eval(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]:
+    """evaluate summer -> winter (first 200 places, stand-in ResMem) with sequences (the default)
+    and with single frames (``--sequence 0``)."""
+    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.selection.config import SelectionConfig
+    from memlog.steps.evaluate import EvaluateConfig, evaluate
+    from tests.stand_in import use_stand_in
+
+    d = tmp_path_factory.mktemp("nordland-eval")
+    out = []
+    with pytest.MonkeyPatch.context() as mp:
+        use_stand_in(mp)
+        for name, seq in (("seq", SequenceConfig()), ("single", SequenceConfig(length=0))):
+            cfg = EvaluateConfig(select=SelectionConfig(keep_fraction=0.5), max_frames=200, seeds=3, report=False,
+                                 sequence=seq)
+            res = evaluate(shared("nordland_dev_summer.mcap"), shared("nordland_dev_winter.mcap"), d / name, cfg,
+                           truth=shared("nordland_dev_truth.json"))
+            out.append(json.loads((d / name / "results.json").read_text()))
+            assert out[-1]["memorable"]["recall@1"] == res.results["memorable"]["recall@1"]
+    return out[0], out[1]
+
+
+def test_evaluate_reports_sequence_and_single_frames_side_by_side(nordland_eval: tuple[dict, dict]) -> None:
+    """Each map's single-frame row is what a single-frame evaluation gives, under both protocols;
+    sequences localize the real winter drive far better than single frames."""
+    seq, single = nordland_eval
+    assert seq["matching"]["matching"] == "sequence" and single["matching"]["matching"] == "single frame"
+    for name in ("full", "memorable", "memorable_exact", "uniform", "random"):
+        assert "single_frame" not in single[name]
+        for key in ("recall@1", "auc"):
+            assert seq[name]["single_frame"][key] == pytest.approx(single[name][key], abs=1e-9), (name, key)
+            assert seq[name]["single_frame"]["paper_protocol"][key] == pytest.approx(
+                single[name]["paper_protocol"][key], abs=1e-9), (name, key)
+    assert seq["full"]["recall@1"] > single["full"]["recall@1"] + 0.2, (seq["full"], single["full"])
+    # the memorable map evaluated is the map written (default --candidates 1), the exact selection beside it
+    assert seq["memorable"]["candidates"] == 1 and "kept_indices" in seq["memorable_exact"]
