@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -186,9 +187,11 @@ def case_map(log: str, variant: str, stride: str, fraction: str, workers: str) -
     from memlog.steps.map import MapConfig, make_map
 
     score_cfg = {"all-scores": ScoreConfig(all_scores=True), "fast-all-scores": ScoreConfig(all_scores=True, mode="fast")}
-    k: int | str = int(variant[1:]) if variant.startswith("K") else "all"
+    kept = variant.endswith("-score-kept")  # K1-score-kept: --candidates 1 --score-kept
+    name = variant.removesuffix("-score-kept")
+    k: int | str = int(name[1:]) if name.startswith("K") else "all"
     cfg = MapConfig(score=score_cfg.get(variant, ScoreConfig()), select=SelectionConfig(keep_fraction=float(fraction)),
-                    descriptor=None, stride=int(stride), workers=int(workers), candidates=k)
+                    descriptor=None, stride=int(stride), workers=int(workers), candidates=k, score_kept=kept)
     base = _peak_mb()
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter()
@@ -199,12 +202,16 @@ def case_map(log: str, variant: str, stride: str, fraction: str, workers: str) -
             "crops_full": res.crops_full, "kept_indices": kept, "peak_mb": _peak_mb(), "base_mb": base}
 
 
-def bench_map(log: str, stride: int, fraction: float) -> None:
-    """All scores vs the staged exact selection vs shortlists, 1 and 2 worker processes."""
+MAP_VARIANTS = ("all-scores", "staged", "staged-2", "K1", "K1-score-kept", "K2", "K4", "fast-all-scores")
+
+
+def bench_map(log: str, stride: int, fraction: float, variants: Sequence[str] = MAP_VARIANTS) -> None:
+    """All scores vs the staged exact selection vs shortlists, 1 and 2 worker processes (the first
+    variant is the reference of the speed-up and of "same map")."""
     rows = []
     ref = None
-    for variant, workers in (("all-scores", 1), ("staged", 1), ("staged", 2), ("K1", 1), ("K2", 1), ("K4", 1),
-                             ("fast-all-scores", 1)):
+    for v in variants:
+        variant, workers = (v[:-2], 2) if v.endswith("-2") else (v, 1)
         if variant.startswith("fast") and not _fast_ready():
             continue
         r = _case("map", log, variant, str(stride), str(fraction), str(workers))
@@ -342,6 +349,8 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=12, help="frames per log for the scorer table")
     ap.add_argument("--big-mb", type=int, default=1000, help="size of the synthetic large log for the memory table")
     ap.add_argument("--map-stride", type=int, default=4, help="every n-th Nordland frame for the map table")
+    ap.add_argument("--map-variants", nargs="+", choices=MAP_VARIANTS, default=list(MAP_VARIANTS),
+                    help="map table: which runs (the first is the reference)")
     ap.add_argument("--case", nargs="+", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.case:
@@ -354,7 +363,7 @@ def main() -> int:
     if "descriptors" in a.what:
         bench_descriptors()
     if "map" in a.what:  # not in the default set: about an hour on two cores
-        bench_map("nordland_dev_summer.mcap", a.map_stride, 0.1)
+        bench_map("nordland_dev_summer.mcap", a.map_stride, 0.1, a.map_variants)
     if "threads" in a.what:
         bench_threads()
     if "search" in a.what:  # not in the default set: it builds a ~1.1 GB map in /tmp once

@@ -289,7 +289,8 @@ def test_every_format_with_the_real_models_gives_the_one_process_outputs(tmp_pat
     logs = [FIXTURES / n for n in FORMATS if n != "ros1.mcap"]
     logs.append(tmp_path / "ros1_profile.mcap")  # its outputs would be named like ros1.bag's
     shutil.copyfile(FIXTURES / "ros1.mcap", logs[-1])
-    cfg = BatchConfig(map=MapConfig(stride=2), workers=2, chunk_frames=1)
+    # score_kept: the map step's ResMem also runs on the workers (by default one candidate per segment needs none)
+    cfg = BatchConfig(map=MapConfig(stride=2, score_kept=True), workers=2, chunk_frames=1)
     (tmp_path / "ref").mkdir()
     want = {log.name: reference(log, tmp_path / "ref", cfg, stand_in=False) for log in logs}
     res = batch(logs, tmp_path / "out", cfg)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -219,4 +220,11 @@ def test_evaluate_quick_trials_several_descriptors(all_scored: Path, tmp_path: P
                         "--max-frames", "3", "--seeds", "2", "--no-report"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     lines = [ln for ln in r.stdout.splitlines() if ln.startswith(("thumbnail", "dinov2-gem"))]
-    assert len(lines) == 10 and "Traceback" not in r.stderr  # 5 maps per descriptor (exact selection too), one table
+    assert len(lines) == 12 and "Traceback" not in r.stderr  # 6 maps per descriptor, one table
+    maps: dict[str, list[str]] = {}
+    for ln in lines:  # the map column: full, memorable (written), its exact selection, and the three baselines
+        m = re.match(r"^(\S+)\s+(?:raw|whitened)\s+(.+?)\s{2,}\d", ln)
+        assert m, ln
+        maps.setdefault(m.group(1), []).append(m.group(2))
+    assert all(m == ["full", "memorable", "memorable (exact)", "every k-th", "uniform by distance", "random"]
+               for m in maps.values()), maps  # the demo has GPS: uniform by distance too

@@ -113,6 +113,41 @@ def test_chooser_skips_what_cannot_win() -> None:
     assert not states[1].scored and states[1].low == 0.0 and states[1].high == pytest.approx(1.0)
 
 
+def test_one_candidate_without_an_ms_minimum_needs_no_resmem() -> None:
+    """``--candidates 1``: the segment's one candidate (best SS^2 ES of the segment) is kept without
+    ResMem; with an MS minimum it is scored (the minimum may drop it); the selection from records
+    where its MS is unknown keeps the same frames as the selection from every MS."""
+    ss = np.array([0.9, 1.0, 0.8, 0.95])
+    es = np.array([0.5, 0.6, 0.7, 0.4])
+    scored: list[int] = []
+
+    def scorer(row: int, threshold: float | None, known: np.ndarray | None) -> MSResult:
+        scored.append(row)
+        return _crop_loop(np.full(25, 0.3), np.full(25, ss[row] / 25), threshold, known)
+
+    winner, states = choose_in_segment([0, 1, 2, 3], ss, es, scorer, shortlist=1, score_alone=False)
+    assert winner == 1 and scored == [] and not states[1].scored and not states[1].exact
+    winner, _ = choose_in_segment([0, 1, 2, 3], ss, es, scorer, shortlist=1, score_alone=False, min_ms=0.5)
+    assert winner is None and scored == [1]  # scored: the minimum decides (0.3 < 0.5: a gap)
+    # selection from records: unknown MS of the one candidate, against MS known everywhere
+    rng = np.random.default_rng(2)
+    n = 40
+    known = ScoreTable(index=np.arange(n), t_ns=np.arange(n) * 10**8, ms=rng.uniform(0.4, 0.9, n),
+                       ss=rng.uniform(0.3, 1.0, n), es=rng.uniform(0.2, 0.8, n))
+    cfg = SegmentConfig(keep_fraction=0.2, by="time", shortlist=1)
+    want = select_segments(known, cfg)
+    cand = want.kept_indices
+    unknown_ms = known.ms.copy()
+    unknown_ms[np.setdiff1d(np.arange(n), cand)] = 0.5  # other frames: anything
+    unknown_ms[cand] = np.nan  # the candidates: not scored
+    got = select_segments(ScoreTable(index=known.index, t_ns=known.t_ns, ms=unknown_ms, ss=known.ss, es=known.es), cfg)
+    assert got.kept_indices.tolist() == cand.tolist() and len(cand) == 8
+    # an MS minimum needs the MS: unknown fails it
+    strict = SegmentConfig(keep_fraction=0.2, by="time", shortlist=1, min_ms=0.1)
+    assert select_segments(ScoreTable(index=known.index, t_ns=known.t_ns, ms=unknown_ms, ss=known.ss,
+                                      es=known.es), strict).kept_indices.size == 0
+
+
 def test_ms_to_beat_inverts_the_score() -> None:
     for ss, es, ms in ((0.9, 0.3, 0.7), (1.0, 0.05, 0.2), (0.5, 0.5, 0.99)):
         for w in ((1.0, 1.0, 1.0), (2.0, 0.0, 1.0)):
@@ -363,6 +398,15 @@ def test_shortlist_map_keeps_the_best_candidate_of_each_segment(k: int, tmp_path
         n_segments += 1
     assert n_segments > 5 and short.crops_run is not None and short.crops_run <= k * 25 * n_segments
     recs_map = {r["frame_index"]: r for r in read_scores(tmp_path / "short.mcap")[topic]}
+    if k == 1:  # MS chooses nothing: ResMem did not run, the kept frames' MS is unknown (within its bounds)
+        assert short.crops_run == 0
+        for i in s.kept_indices.tolist():
+            r = recs_map[i]
+            assert r["ms"] is None and not r["ms_exact"] and r["ms_low"] <= every[i]["ms"] <= r["ms_high"] + 1e-6
+        kept = make_map(log, tmp_path / "kept.mcap", MapConfig(select=sel, descriptor=None, stride=20, candidates=k,
+                                                               score_kept=True))
+        assert _kept(kept) == _kept(short)  # --score-kept records MS, it chooses nothing
+        recs_map = {r["frame_index"]: r for r in read_scores(tmp_path / "kept.mcap")[topic]}
     for i in s.kept_indices.tolist():  # kept frames carry full scoring's MS
         assert recs_map[i]["ms_exact"] and recs_map[i]["ms"] == pytest.approx(every[i]["ms"], abs=2e-6)
     # a shortlist as long as every segment is the exact selection

@@ -276,6 +276,10 @@ def _add_map_settings(p: argparse.ArgumentParser) -> None:
                         "entropy spread over the segment (approximate; default %(default_k)s, see the README's "
                         "defaults table); 'all': exactly the frames that can still win, which keeps the same frames "
                         "as scoring every frame" % {"default_k": DEFAULT_CANDIDATES})
+    p.add_argument("--score-kept", action="store_true", default=None,
+                   help="also run ResMem (25 crops) on a segment's only candidate to record its memorability; by "
+                        "default it is not run where it would choose nothing (--candidates 1): the kept frame's "
+                        "record has ms null and its bounds")
 
 
 def map_config(args: argparse.Namespace) -> Any:
@@ -294,7 +298,7 @@ def map_config(args: argparse.Namespace) -> Any:
     if args.keep_topic:
         flags["keep_topics"] = tuple(args.keep_topic)
     for key in ("position_topic", "image_format", "jpeg_quality", "descriptors", "descriptor_dtype", "stride", "workers",
-                "candidates"):
+                "candidates", "score_kept"):
         v = getattr(args, key, None)
         if v is not None:
             flags["descriptors_path" if key == "descriptors" else key] = v

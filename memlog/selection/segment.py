@@ -574,12 +574,21 @@ def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> S
     score = combined_score(table, cfg.weights, cfg.combine, cfg.distinct_weight)
     if cfg.shortlist is not None:
         short = _shortlisted(table, seg, cfg)
+        if cfg.min_ms <= 0 and n:
+            # a segment's only candidate is kept whatever its MS: an unknown MS (ResMem not run
+            # because it would not choose anything, see staged.choose_in_segment) does not fail it
+            alone = short & (np.bincount(seg[short], minlength=int(seg.max()) + 1)[seg] == 1)
+            unknown = alone & np.isnan(table.ms) & (code == 3)
+            code = np.where(unknown, 0, code).astype(np.int8)
+            passing = code == 0
         passing &= short  # a frame that was not a candidate is dropped for its "segment"
         info["shortlist"] = cfg.shortlist
     keep = np.zeros(n, dtype=bool)
     gaps: list[Gap] = []
     if n:
-        eff = np.where(passing & np.isfinite(score), score, -np.inf)
+        # a passing frame whose score is unknown (its segment's only candidate, MS not run) still
+        # ranks above every frame that does not pass
+        eff = np.where(passing, np.where(np.isfinite(score), score, -np.finfo(np.float64).max), -np.inf)
         rows = np.arange(n)
         order = np.lexsort((rows, -eff, seg))  # by segment, best score first, earliest first
         first_in_seg = np.concatenate([[True], seg[order][1:] != seg[order][:-1]])

@@ -107,6 +107,7 @@ def choose_in_segment(
     shortlist: int | None = None,
     digits: int | None = MS_DIGITS,
     prepare: Callable[[list[int]], None] | None = None,
+    score_alone: bool = True,
 ) -> tuple[int | None, dict[int, MSState]]:
     """The winning row of one segment, and the MS state of every candidate row.
 
@@ -116,7 +117,9 @@ def choose_in_segment(
     passes ``min_ms`` (a gap). ``digits``: MS is compared as the score records store it (rounded
     to this many decimals; rounding keeps bounds bounds), so the choice is the one full scoring
     makes from its records. ``prepare`` is told the order in which candidates may be scored
-    (so frames can be read ahead in that order).
+    (so frames can be read ahead in that order). ``score_alone=False``: a segment left with one
+    candidate (``shortlist=1``, or one passing frame) and no MS minimum keeps it without ResMem
+    (its MS would choose nothing; it stays unknown).
     """
     def q(v: float) -> float:
         return v if digits is None or not math.isfinite(v) else round(v, digits)
@@ -135,6 +138,8 @@ def choose_in_segment(
     if shortlist is not None:
         todo = shortlist_rows(todo, [upper[r] for r in todo], shortlist)
     order = sorted(todo, key=lambda r: (-upper[r], r))
+    if not score_alone and len(order) == 1 and min_ms <= 0:
+        return order[0], states
     if prepare is not None:
         prepare(order)
     lead: int | None = None

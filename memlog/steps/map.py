@@ -79,7 +79,10 @@ class MapConfig:
     segment with ResMem (the best by their cheap scores, spread over the segment; approximate;
     default :data:`~memlog.selection.config.DEFAULT_CANDIDATES`), or ``"all"``: exactly the
     frames that can still win (the same frames as scoring every frame); ``stride``: consider every n-th
-    frame of each topic only (frame indices stay positions on the topic).
+    frame of each topic only (frame indices stay positions on the topic); ``score_kept``: also run
+    ResMem on a segment's only candidate (``candidates=1``, or one passing frame) to record its MS —
+    by default it is not run there, because its MS chooses nothing (the record's ``ms`` is null,
+    ``ms_low``/``ms_high`` its bounds), unless the selection has an MS minimum.
     """
 
     score: ScoreConfig = field(default_factory=ScoreConfig)
@@ -97,8 +100,11 @@ class MapConfig:
     workers: int = 1
     candidates: int | Literal["all"] = DEFAULT_CANDIDATES
     stride: int = 1
+    score_kept: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.score_kept, bool):
+            raise ConfigError(f"score_kept must be true or false, got {self.score_kept!r}")
         if self.descriptor is not None and self.descriptor != AUTO and self.descriptor not in DESCRIBERS:
             raise ConfigError(f"descriptor must be auto, one of {', '.join(sorted(DESCRIBERS))} or none, "
                               f"got {self.descriptor!r}")
@@ -363,7 +369,7 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
     batches = [jobs[i:i + group] for i in range(0, len(jobs), group)]
     wcfg = score_cfg.replace(threads=job_threads(ex, score_cfg.threads))
     args = ((log, score_cfg if isinstance(ex, InProcess) else wcfg, window, [j for _, _, j in b], sel_cfg.weights,
-             sel_cfg.min_ms, shortlist) for b in batches)
+             sel_cfg.min_ms, shortlist, cfg.score_kept or shortlist is None) for b in batches)
     results = progress(ex.map_ordered(choose_chunk, args), total=len(batches), desc="memorability", unit="job")
     for b, res in zip(batches, results):
         for (t, _rows, job), r in zip(b, res):

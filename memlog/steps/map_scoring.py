@@ -173,12 +173,18 @@ class _Loader:
 
 def choose_chunk(log: str, config: ScoreConfig, window: FrameWindow, jobs: list[SegmentJob],
                  weights: tuple[float, float, float], min_ms: float,
-                 shortlist: int | None) -> list[SegmentResult]:
+                 shortlist: int | None, score_alone: bool = True) -> list[SegmentResult]:
     """Pass 2 for a group of segments (a worker's job): each segment's winner, ResMem run only
-    where it can change the choice."""
+    where it can change the choice (and on a segment's only candidate when ``score_alone``)."""
     scorer = _scorer_for(config)
-    mem = scorer.memorability
-    mem = getattr(mem, "exact", mem)  # fast mode's surrogate is not used for the choice
+    loaded: list[Any] = []
+
+    def mem(*a: Any, **k: Any) -> Any:  # ResMem loads on the first frame it scores (with K = 1: never)
+        if not loaded:
+            m = scorer.memorability
+            loaded.append(getattr(m, "exact", m))  # fast mode's surrogate is not used for the choice
+        return loaded[0](*a, **k)
+
     results: list[SegmentResult] = []
     with open_log(log) as reader:
         reader.quiet_warnings()
@@ -207,7 +213,8 @@ def choose_chunk(log: str, config: ScoreConfig, window: FrameWindow, jobs: list[
             es = np.asarray(job.es, dtype=np.float64)
             ms_max = np.ones(n) if config.normalize == "static" else None
             winner, states = choose_in_segment(list(range(n)), ss, es, score, weights=weights, min_ms=min_ms,
-                                               ms_max=ms_max, shortlist=shortlist, prepare=loader.plan)
+                                               ms_max=ms_max, shortlist=shortlist, prepare=loader.plan,
+                                               score_alone=score_alone)
             results.append(SegmentResult(winner, [states[i] for i in range(n)]))
     return results
 
