@@ -302,11 +302,17 @@ def test_staged_table_is_what_full_scoring_selects_from(setting: str, tmp_path: 
 def test_default_map_keeps_the_best_cheap_bound_of_each_segment(tmp_path: Path, independent: _Independent) -> None:
     """``memlog map`` with its defaults (``--candidates 1``) on a fixture: per place segment, the
     kept frame is the frame with the largest SS^2 ES (the bound of the geometric score, MS <= SS)
-    among the frames passing the minimum scores, and its record carries ResMem's exact MS; ResMem
-    ran on that frame only."""
+    among the frames passing the minimum scores. ResMem does not run (its MS would choose nothing):
+    the record holds MS's bounds. With ``score_kept`` the same frames carry ResMem's exact MS, and
+    ResMem ran on those frames only."""
     sel = MapConfig().select
-    assert MapConfig().candidates == 1  # the default this test is about
-    res = make_map(DEMO, tmp_path / "map.mcap")
+    assert MapConfig().candidates == 1 and not MapConfig().score_kept  # the defaults this test is about
+    default = make_map(DEMO, tmp_path / "default.mcap")
+    assert default.crops_run == 0
+    res = make_map(DEMO, tmp_path / "map.mcap", MapConfig(score_kept=True))
+    assert {t: s.kept_indices.tolist() for t, s in default.selections.items()} == {
+        t: s.kept_indices.tolist() for t, s in res.selections.items()}
+    unscored = read_scores(tmp_path / "default.mcap")
     recs = read_scores(tmp_path / "map.mcap")
     assert sorted(res.selections) == sorted(independent.frames) == [COMP, "/camera/image_raw"]
     crops = 0
@@ -331,6 +337,9 @@ def test_default_map_keeps_the_best_cheap_bound_of_each_segment(tmp_path: Path, 
         by_index = {r["frame_index"]: r for r in recs[topic]}
         assert sorted(by_index) == want  # the map holds the kept frames, each with its scores
         for i in want:
+            u = {r["frame_index"]: r for r in unscored[topic]}[i]
+            assert u["ms"] is None and not u["ms_exact"] and u["ms_low"] <= independent.ms(topic, i) <= u["ms_high"] + 1e-6
+            assert (u["ss"], u["es"]) == (by_index[i]["ss"], by_index[i]["es"])
             r = by_index[i]
             assert r["ms_exact"] and r["ms"] == pytest.approx(independent.ms(topic, i), abs=2e-6), (topic, i)
             assert r["ss"] == pytest.approx(ss[index.index(i)], abs=1e-6)
