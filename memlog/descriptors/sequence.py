@@ -727,12 +727,13 @@ def match_sequences(
 
     rc_db = rc_all if db.index is None else rc_all[db.index]
     order = np.argsort(rc_db, kind="stable")
+    rc = rc_db[order]  # the map frames' coordinates, increasing
+    unit = float(ref_unit) if ref_unit else _median_step(rc_all)  # the reference drive's frame spacing
+    spacing = _median_step(rc)  # the map's (kept frames') spacing
     if cfg.enabled and cfg.scale_length and n_m > 1:
         # a sparse map (every 2nd, 4th... frame kept) has fewer frames along a window of query
         # frames: the window grows with the map's spacing so a sequence gathers as much evidence
-        unit0 = float(ref_unit) if ref_unit else _median_step(np.sort(rc_all))
-        spacing0 = _median_step(rc_db[order])
-        scale = min(MAX_LENGTH_SCALE, max(1.0, spacing0 / unit0)) if unit0 > 0 else 1.0
+        scale = min(MAX_LENGTH_SCALE, max(1.0, spacing / unit)) if unit > 0 else 1.0
         cfg = replace(cfg, length=int(round(cfg.length * scale)))
         info["length_used"] = cfg.length
     full_row = order if db.index is None else db.index[order]
@@ -784,9 +785,6 @@ def match_sequences(
         log.info("sequence matching: %s", info["fallback"])
 
     if use.any() and n_m:
-        rc = rc_db[order]
-        unit = float(ref_unit) if ref_unit else _median_step(rc_all if db.index is not None else rc)
-        spacing = _median_step(rc) or unit
         qsteps = []
         for a in np.unique(run_lo[use]):
             qsteps.append(np.abs(np.diff(qc[a : run_hi[a]])))

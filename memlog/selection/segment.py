@@ -12,8 +12,8 @@ The drive is cut into consecutive place segments, by one of
   the camera moved for small steps), capped at :data:`VIEW_STEP_CAP` (a sudden change of the
   whole view is not a long way), and the drive's total view change is split into
   equal parts like a path length; without a size (``keep_fraction``) and with ``view_distance``, a new
-  segment starts instead when the distance to the segment's first frame's descriptor exceeds
-  ``view_distance``.
+  segment starts instead when the cosine distance to the segment's first frame's view vector (its
+  descriptor in a table without view vectors) exceeds ``view_distance``.
 
 With ``keep_fraction=F`` instead of a spacing, the number of segments is
 ``S = max(1, floor(F*N + 0.5))`` and the drive's total length (metres, view change, seconds or
@@ -394,7 +394,7 @@ def _view_segments(table: ScoreTable, view_distance: float) -> NDArray[np.int64]
     n = table.n
     if table.view is not None:
         d = table.view
-        known = np.linalg.norm(d.astype(np.float64), axis=1) > 0
+        known = ~table.blank_view()
     else:
         assert table.descriptors is not None
         d = table.descriptors
@@ -570,19 +570,17 @@ def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> S
     n = table.n
     seg, info = segment_ids(table, cfg)
     code = first_failing(table, cfg.min_ms, cfg.min_ss, cfg.min_es)
-    passing = code == 0
     score = combined_score(table, cfg.weights, cfg.combine, cfg.distinct_weight)
+    short = np.ones(n, dtype=bool)
     if cfg.shortlist is not None:
         short = _shortlisted(table, seg, cfg)
         if cfg.min_ms <= 0 and n:
             # a segment's only candidate is kept whatever its MS: an unknown MS (ResMem not run
             # because it would not choose anything, see staged.choose_in_segment) does not fail it
             alone = short & (np.bincount(seg[short], minlength=int(seg.max()) + 1)[seg] == 1)
-            unknown = alone & np.isnan(table.ms) & (code == 3)
-            code = np.where(unknown, 0, code).astype(np.int8)
-            passing = code == 0
-        passing &= short  # a frame that was not a candidate is dropped for its "segment"
+            code = np.where(alone & np.isnan(table.ms) & (code == 3), 0, code).astype(np.int8)
         info["shortlist"] = cfg.shortlist
+    passing = (code == 0) & short  # a frame that was not a candidate is dropped for its "segment"
     keep = np.zeros(n, dtype=bool)
     gaps: list[Gap] = []
     if n:

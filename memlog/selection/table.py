@@ -182,6 +182,12 @@ class ScoreTable:
             view=None if self.view is None else self.view[r],
         )
 
+    def blank_view(self) -> NDArray[np.bool_]:
+        """Rows whose view vector is blank (a flat frame: zero vector); all False without view vectors."""
+        if self.view is None:
+            return np.zeros(self.n, dtype=bool)
+        return np.asarray(np.linalg.norm(self.view.astype(np.float64), axis=1) < 1e-6, dtype=bool)
+
     def view_steps(self) -> NDArray[np.float64] | None:
         """How much the view changed from each row's predecessor (cosine distance of the view
         vectors; 0 for the first row, 0 between two blank frames, 1 between a blank and a
@@ -192,8 +198,7 @@ class ScoreTable:
         out = np.zeros(self.n)
         if self.n > 1:
             dots = np.einsum("ij,ij->i", v[1:], v[:-1])
-            norms = np.linalg.norm(v, axis=1)
-            blank = norms < 1e-6
+            blank = self.blank_view()
             both = blank[1:] & blank[:-1]
             one = blank[1:] ^ blank[:-1]
             out[1:] = np.where(both, 0.0, np.where(one, 1.0, np.clip(1.0 - dots, 0.0, 2.0)))

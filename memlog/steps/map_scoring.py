@@ -176,15 +176,7 @@ def choose_chunk(log: str, config: ScoreConfig, window: FrameWindow, jobs: list[
                  shortlist: int | None, score_alone: bool = True) -> list[SegmentResult]:
     """Pass 2 for a group of segments (a worker's job): each segment's winner, ResMem run only
     where it can change the choice (and on a segment's only candidate when ``score_alone``)."""
-    scorer = _scorer_for(config)
-    loaded: list[Any] = []
-
-    def mem(*a: Any, **k: Any) -> Any:  # ResMem loads on the first frame it scores (with K = 1: never)
-        if not loaded:
-            m = scorer.memorability
-            loaded.append(getattr(m, "exact", m))  # fast mode's surrogate is not used for the choice
-        return loaded[0](*a, **k)
-
+    scorer = _scorer_for(config)  # ResMem loads on the first frame scored (Scorer.memorability; K = 1: never)
     results: list[SegmentResult] = []
     with open_log(log) as reader:
         reader.quiet_warnings()
@@ -201,6 +193,8 @@ def choose_chunk(log: str, config: ScoreConfig, window: FrameWindow, jobs: list[
                     scale = 1.0 / ss if ss > 0 else 0.0
                     thr = None if threshold is None else threshold * ss
                 before = int(np.count_nonzero(~np.isnan(known))) if known is not None else 0
+                mem = scorer.memorability
+                mem = getattr(mem, "exact", mem)  # fast mode's surrogate is not used for the choice
                 r = mem(f1135, s_map, thr, known=known)
                 run = r.n_scored - before
                 if r.exact:
