@@ -39,7 +39,7 @@ def main() -> int:
     from memlog.outputs.annotated import read_scores
     from memlog.selection import random_masks, uniform_mask
     from memlog.selection.config import SelectionConfig
-    from memlog.selection.segment import SegmentConfig, segment_ids
+    from memlog.selection.segment import SegmentConfig, cut_segments
     from memlog.selection.staged import MSResult, choose_in_segment
     from memlog.steps.map import score_table
 
@@ -75,7 +75,7 @@ def main() -> int:
     print("|---|---|---|---|---|---|")
     for fr in a.fractions:
         sel = SelectionConfig(keep_fraction=fr)
-        seg, _ = segment_ids(table, SegmentConfig(**sel.segment_settings()))
+        seg, coord, _ = cut_segments(table, SegmentConfig(**sel.segment_settings()))
         passing = (table.ss >= sel.min_ss) & (table.es >= sel.min_es)
         rows: list[tuple[str, np.ndarray, int]] = []
         for k in [None, *a.ks]:
@@ -89,7 +89,8 @@ def main() -> int:
                     return MSResult(v, v, True, None, 25)
 
                 winner, states = choose_in_segment(cand, table.ss, table.es, fn, weights=sel.weights,
-                                                   min_ms=sel.min_ms, shortlist=k)
+                                                   min_ms=sel.min_ms, shortlist=k, coord=coord,
+                                                   centre_tolerance=sel.centre_tolerance)
                 scored += sum(st.scored for st in states.values())
                 if winner is not None:
                     keep[winner] = True

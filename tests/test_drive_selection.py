@@ -164,3 +164,46 @@ def test_evaluate_reports_sequence_and_single_frames_side_by_side(nordland_eval:
     assert seq["full"]["recall@1"] > single["full"]["recall@1"] + 0.2, (seq["full"], single["full"])
     # the memorable map evaluated is the map written (default --candidates 1), the exact selection beside it
     assert seq["memorable"]["candidates"] == 1 and "kept_indices" in seq["memorable_exact"]
+
+
+def test_one_candidate_per_segment_keeps_the_map_evenly_spaced_where_scores_hardly_differ() -> None:
+    """The default shortlist (one candidate per segment) takes, among the frames within
+    ``centre_tolerance`` of the segment's best cheap bound, the one nearest the segment's middle:
+    a camera moving at constant speed past a scene of even texture (ES within +-1 %) gets a map
+    spaced evenly along the strip; the best bound alone (tolerance 0) picks by noise in ES and
+    leaves irregular gaps. A frame whose bound is clearly better still wins its segment."""
+    strip = _strip(1600, seed=5)
+    x = np.arange(0, 1200, 4.0)  # 300 frames, 4 px apart
+    view = _drive(strip, x, seed=6)
+    n = len(x)
+    rng = np.random.default_rng(7)
+    es = rng.uniform(0.495, 0.505, n)
+    t = ScoreTable(index=np.arange(n), t_ns=np.arange(n, dtype=np.int64) * 50_000_000, ms=np.full(n, np.nan),
+                   ss=np.ones(n), es=es, view=view)
+    gaps = {}
+    for tol in (SEGMENT_DEFAULTS.centre_tolerance, 0.0):
+        sel = select(t, "segment", keep_fraction=0.1, shortlist=1, centre_tolerance=tol)
+        kept = sel.kept_indices
+        assert len(kept) == 30
+        gaps[tol] = np.diff(x[kept])
+    even = gaps[SEGMENT_DEFAULTS.centre_tolerance]
+    assert even.max() <= 1.6 * even.mean() and even.min() >= 0.4 * even.mean()
+    assert gaps[0.0].max() > even.max() and gaps[0.0].std() > 1.5 * even.std()
+    # a frame 10 % better than its neighbours (beyond the 3 % tolerance) is kept wherever it lies
+    sel = select(t, "segment", keep_fraction=0.1, shortlist=1)
+    seg = sel.segment_id
+    rows = np.flatnonzero(seg == 12)
+    es2 = es.copy()
+    es2[rows[0]] = 0.5 * 1.1 ** 3  # (SS^2 ES)^(1/3) 10 % above the rest
+    t2 = ScoreTable(index=t.index, t_ns=t.t_ns, ms=t.ms, ss=t.ss, es=es2, view=view)
+    kept2 = select(t2, "segment", keep_fraction=0.1, shortlist=1).kept_indices
+    assert rows[0] in kept2 and not np.isin(sel.kept_indices[np.isin(sel.kept_indices, rows)], kept2).any()
+
+
+def test_centre_tolerance_is_checked() -> None:
+    from memlog.errors import ConfigError
+    from memlog.selection.config import SelectionConfig
+
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ConfigError, match="centre_tolerance"):
+            SelectionConfig(keep_fraction=0.25, centre_tolerance=bad)

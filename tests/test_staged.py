@@ -24,7 +24,7 @@ from memlog.outputs.annotated import read_scores
 from memlog.scoring.config import ScoreConfig
 from memlog.selection import ScoreTable
 from memlog.selection.config import SelectionConfig
-from memlog.selection.segment import geometric_score, segment_ids, select_segments, SegmentConfig
+from memlog.selection.segment import SEGMENT_DEFAULTS, geometric_score, segment_ids, select_segments, SegmentConfig
 from memlog.selection.staged import MSResult, choose_in_segment, ms_to_beat, shortlist_rows
 from memlog.steps.map import MapConfig, make_map
 from memlog.steps.score import score
@@ -161,6 +161,41 @@ def test_shortlist_spreads_over_the_segment() -> None:
     upper = [0.9, 0.8, 0.1, 0.2, 0.3, 0.95, 0.1, 0.1, 0.5, 0.4]
     assert shortlist_rows(rows, upper, 3) == [0, 5, 8]
     assert shortlist_rows(rows, upper, 20) == rows
+
+
+def test_shortlist_prefers_the_middle_of_each_part_within_the_tolerance() -> None:
+    # one segment (bin 3) of 10 rows evenly spread over [3, 4); scores within 5 % of each other
+    # except row 8, which is 20 % better
+    rows = list(range(10))
+    coord = [3.0 + (i + 0.5) / 10 for i in rows]
+    upper = [0.50, 0.49, 0.48, 0.485, 0.49, 0.492, 0.47, 0.49, 0.60, 0.48]
+    # tolerance 0: the best bound; 0.03 of the best (0.60): only row 8 is near enough
+    assert shortlist_rows(rows, upper, 1, coord, 0.0) == [8]
+    assert shortlist_rows(rows, upper, 1, coord, 0.03) == [8]
+    # without row 8's lead, every row within 3 % of 0.50 counts and the middle (3.5) decides:
+    # rows 4 and 5 are equally near (3.45, 3.55), the higher bound (row 5) wins
+    flat = upper[:8] + [0.49, 0.48]
+    assert shortlist_rows(rows, flat, 1, coord, 0.03) == [5]
+    # two parts (rows 0-4 and 5-9): their middles are 3.25 and 3.75 (rows 2 and 7), but row 2 is
+    # 4 % below its part's best: rows 1 (3.15) and 3 (3.35) are equally near, the higher bound wins
+    assert shortlist_rows(rows, flat, 2, coord, 0.03) == [1, 7]
+    # brute force over random segments: the chosen row is within the tolerance, and no row within
+    # it lies nearer the part's middle
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        m, k, tol = int(rng.integers(2, 30)), int(rng.integers(1, 4)), float(rng.choice([0.01, 0.05, 0.2]))
+        c = np.sort(rng.uniform(7.0, 8.0, m)).tolist()
+        u = rng.uniform(0.2, 0.6, m).tolist()
+        got = shortlist_rows(list(range(m)), u, k, c, tol)
+        if k >= m:
+            assert got == list(range(m))
+            continue
+        for j, part in enumerate(np.array_split(np.arange(m), k)):
+            ok = [i for i in part.tolist() if u[i] >= (1 - tol) * max(u[i] for i in part.tolist())]
+            mid = 7.0 + (j + 0.5) / k
+            (pick,) = [g for g in got if g in part.tolist()]
+            assert pick in ok
+            assert abs(c[pick] - mid) == min(abs(c[i] - mid) for i in ok)
 
 
 # -- the map step with the real ResMem ------------------------------------------------------------
@@ -372,15 +407,20 @@ def test_staged_map_equals_full_scoring_on_shared_logs(name: str, stride: int, t
         assert staged.crops_run <= full.crops_run
 
 
-@pytest.mark.parametrize("k", [1, 2])
-def test_shortlist_map_keeps_the_best_candidate_of_each_segment(k: int, tmp_path: Path, stand_in: None) -> None:
+@pytest.mark.parametrize("k,centre", [(1, False), (2, False), (1, True), (2, True)])
+def test_shortlist_map_keeps_the_best_candidate_of_each_segment(k: int, centre: bool, tmp_path: Path,
+                                                                 stand_in: None) -> None:
     """``--candidates K``: each segment is cut into K consecutive parts, the frame with the best
-    cheap bound (SS^2 ES: MS <= SS) of each part is a candidate, and the kept frame is the best
-    candidate by the scores full scoring computes."""
+    cheap bound (SS^2 ES: MS <= SS) of each part is a candidate (with the centre rule: the frame
+    nearest the middle of the part's share of the segment among those within the tolerance of the
+    part's best bound; segments by frame count, so a row's place is known without memlog's code),
+    and the kept frame is the best candidate by the scores full scoring computes."""
     from memlog.io import FrameWindow
 
     log = shared("nordland_dev_summer.mcap")
-    sel = SelectionConfig(keep_fraction=0.25)
+    tol = SEGMENT_DEFAULTS.centre_tolerance
+    sel = (SelectionConfig(keep_fraction=0.25, segment_by="count") if centre
+           else SelectionConfig(keep_fraction=0.25, centre_tolerance=0.0))
     from tests.stand_in import stand_in_scorer
 
     cfg = ScoreConfig(all_scores=True)
@@ -396,11 +436,23 @@ def test_shortlist_map_keeps_the_best_candidate_of_each_segment(k: int, tmp_path
         return float(geometric_score(np.array([e["ms"]]), np.array([e["ss"]]), np.array([e["es"]]))[0])
 
     n_segments = 0
+    rows = s.index.tolist()
+    n, n_seg = len(rows), int(np.unique(s.segment_id).size)
+
+    def bound(i: int) -> float:
+        return float(every[i]["ss"] ** 2 * every[i]["es"])
+
     for sid in np.unique(s.segment_id):
         members = s.index[s.segment_id == sid].tolist()
         cands = []
-        for part in np.array_split(np.array(members), min(k, len(members))):
-            cands.append(max(part.tolist(), key=lambda i: (every[i]["ss"] ** 2 * every[i]["es"], -i)))
+        for j, part in enumerate(np.array_split(np.array(members), min(k, len(members)))):
+            best = max(part.tolist(), key=lambda i: (bound(i), -i))
+            if centre and len(members) > k:
+                # count segments: row r covers [r, r + 1) of n rows cut into n_seg equal segments
+                mid = sid + (j + 0.5) / k
+                near = [i for i in part.tolist() if bound(i) ** (1 / 3) >= (1 - tol) * bound(best) ** (1 / 3)]
+                best = min(near, key=lambda i: (abs((rows.index(i) + 0.5) * n_seg / n - mid), -bound(i), i))
+            cands.append(best)
         expect = max(cands, key=lambda i: (full_value(i), -i))
         kept = [i for i in members if s.keep[s.index.tolist().index(i)]]
         assert kept == [expect], (sid, members, cands)

@@ -36,7 +36,8 @@ class SelectionConfig:
     config's). ``spacing_m``/``spacing_s``: segment mode, one frame per metres / seconds.
     ``segment_by``: how segments are cut. ``dedup``: drop a kept frame within this cosine
     distance of an already kept one (descriptor: the thumbnail). ``min_ss``/``min_ms``/``min_es``,
-    ``weights``, ``combine``, ``still_distance``: segment mode's tuning (defaults:
+    ``weights``, ``combine``, ``still_distance``, ``centre_tolerance`` (the ``--candidates`` shortlist's
+    preference for a segment's middle): segment mode's tuning (defaults:
     :data:`~memlog.selection.segment.SEGMENT_DEFAULTS`, chosen on the shared Nordland slice).
     ``view_distance`` (with ``segment_by="view"`` and no size): a new segment where the view moved
     this far (cosine distance) from the segment's first frame, instead of ``keep_fraction``.
@@ -64,6 +65,7 @@ class SelectionConfig:
     combine: Literal["geometric", "rank"] = SEGMENT_DEFAULTS.combine
     view_distance: float | None = None
     still_distance: float = SEGMENT_DEFAULTS.still_distance
+    centre_tolerance: float = SEGMENT_DEFAULTS.centre_tolerance
     dt: float | None = None
     distinct_weight: float = SEGMENT_DEFAULTS.distinct_weight
     distinct_window: int = 2
@@ -156,7 +158,7 @@ class SelectionConfig:
             "by": self.segment_by, "min_ms": self.min_ms, "min_ss": self.min_ss, "min_es": self.min_es,
             "weights": tuple(self.weights), "combine": self.combine,
             "view_distance": SEGMENT_DEFAULTS.view_distance if self.view_distance is None else self.view_distance,
-            "still_distance": self.still_distance,
+            "still_distance": self.still_distance, "centre_tolerance": self.centre_tolerance,
             "distinct_weight": self.distinct_weight,
         }
         if self.keep_fraction is not None:

@@ -13,7 +13,8 @@ the earlier frame, as in :func:`~memlog.selection.segment.select_segments`): the
 both on real logs.
 
 ``shortlist=K`` (approximate, ``--candidates K``): only K candidates per segment are scored,
-the best by their upper bound, spread over the segment (the best of each of K equal parts).
+the best by their upper bound, spread over the segment (the best of each of K equal parts; with
+a centre tolerance the one nearest the part's middle among those within it of the best).
 """
 
 from __future__ import annotations
@@ -108,6 +109,8 @@ def choose_in_segment(
     digits: int | None = MS_DIGITS,
     prepare: Callable[[list[int]], None] | None = None,
     score_alone: bool = True,
+    coord: NDArray[np.float64] | None = None,
+    centre_tolerance: float = 0.0,
 ) -> tuple[int | None, dict[int, MSState]]:
     """The winning row of one segment, and the MS state of every candidate row.
 
@@ -119,7 +122,9 @@ def choose_in_segment(
     makes from its records. ``prepare`` is told the order in which candidates may be scored
     (so frames can be read ahead in that order). ``score_alone=False``: a segment left with one
     candidate (``shortlist=1``, or one passing frame) and no MS minimum keeps it without ResMem
-    (its MS would choose nothing; it stays unknown).
+    (its MS would choose nothing; it stays unknown). ``coord``/``centre_tolerance``: each row's
+    segment coordinate and the shortlist's preference for the middle of each part
+    (:func:`~memlog.selection.segment.shortlist_rows`).
     """
     def q(v: float) -> float:
         return v if digits is None or not math.isfinite(v) else round(v, digits)
@@ -136,7 +141,8 @@ def choose_in_segment(
     upper = {r: _value(q(hi_ms[r]), float(ss[r]), float(es[r]), weights) for r in rows}
     todo = list(rows)
     if shortlist is not None:
-        todo = shortlist_rows(todo, [upper[r] for r in todo], shortlist)
+        todo = shortlist_rows(todo, [upper[r] for r in todo], shortlist,
+                              None if coord is None else [float(coord[r]) for r in todo], centre_tolerance)
     order = sorted(todo, key=lambda r: (-upper[r], r))
     if not score_alone and len(order) == 1 and min_ms <= 0:
         return order[0], states

@@ -47,7 +47,7 @@ from memlog.scoring.config import ScoreConfig
 from memlog.scoring.scorer import view_vector
 from memlog.selection import ScoreTable, Selection
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
-from memlog.selection.segment import SegmentConfig, segment_ids
+from memlog.selection.segment import SegmentConfig, cut_segments
 from memlog.selection.staged import MSState
 from memlog.steps.map_scoring import CheapFrame, SegmentJob, cheap_frames, choose_chunk, staged_record
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
@@ -354,7 +354,7 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
             descriptors=np.stack([np.asarray(cf.thumb) for cf in good]) if sel_cfg.needs_descriptors else None,
             view=np.stack([np.asarray(cf.view) for cf in good]) if sel_cfg.needs_view else None,
             topic=t)
-        seg, _ = segment_ids(table, seg_cfg)
+        seg, coord, _ = cut_segments(table, seg_cfg)
         passing = (table.ss >= sel_cfg.min_ss) & (table.es >= sel_cfg.min_es)
         for sid in np.unique(seg):
             rows = [int(r) for r in np.flatnonzero((seg == sid) & passing)]
@@ -363,13 +363,15 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
             jobs.append((t, rows, SegmentJob(
                 t, [int(table.index[r]) for r in rows], [float(table.ss[r]) for r in rows],
                 [float(table.es[r]) for r in rows], [good[r].detections for r in rows],
-                int(table.t_ns[rows[0]]), int(table.t_ns[rows[-1]]) + 1)))
+                int(table.t_ns[rows[0]]), int(table.t_ns[rows[-1]]) + 1,
+                None if coord is None else [float(coord[r]) for r in rows])))
     states: dict[tuple[str, int], MSState] = {}
     group = max(1, min(32, len(jobs) // max(1, 4 * ex.workers)))
     batches = [jobs[i:i + group] for i in range(0, len(jobs), group)]
     wcfg = score_cfg.replace(threads=job_threads(ex, score_cfg.threads))
     args = ((log, score_cfg if isinstance(ex, InProcess) else wcfg, window, [j for _, _, j in b], sel_cfg.weights,
-             sel_cfg.min_ms, shortlist, cfg.score_kept or shortlist is None) for b in batches)
+             sel_cfg.min_ms, shortlist, cfg.score_kept or shortlist is None, sel_cfg.centre_tolerance)
+            for b in batches)
     results = progress(ex.map_ordered(choose_chunk, args), total=len(batches), desc="memorability", unit="job")
     for b, res in zip(batches, results):
         for (t, _rows, job), r in zip(b, res):

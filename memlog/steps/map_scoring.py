@@ -119,6 +119,7 @@ class SegmentJob:
     detections: list[list[Any]]
     start_ns: int
     end_ns: int
+    coord: list[float] | None = None  # each candidate's segment coordinate (the shortlist's centre rule)
 
 
 @dataclass
@@ -173,7 +174,8 @@ class _Loader:
 
 def choose_chunk(log: str, config: ScoreConfig, window: FrameWindow, jobs: list[SegmentJob],
                  weights: tuple[float, float, float], min_ms: float,
-                 shortlist: int | None, score_alone: bool = True) -> list[SegmentResult]:
+                 shortlist: int | None, score_alone: bool = True,
+                 centre_tolerance: float = 0.0) -> list[SegmentResult]:
     """Pass 2 for a group of segments (a worker's job): each segment's winner, ResMem run only
     where it can change the choice (and on a segment's only candidate when ``score_alone``)."""
     scorer = _scorer_for(config)  # ResMem loads on the first frame scored (Scorer.memorability; K = 1: never)
@@ -208,7 +210,9 @@ def choose_chunk(log: str, config: ScoreConfig, window: FrameWindow, jobs: list[
             ms_max = np.ones(n) if config.normalize == "static" else None
             winner, states = choose_in_segment(list(range(n)), ss, es, score, weights=weights, min_ms=min_ms,
                                                ms_max=ms_max, shortlist=shortlist, prepare=loader.plan,
-                                               score_alone=score_alone)
+                                               score_alone=score_alone,
+                                               coord=None if job.coord is None else np.asarray(job.coord),
+                                               centre_tolerance=centre_tolerance)
             results.append(SegmentResult(winner, [states[i] for i in range(n)]))
     return results
 
