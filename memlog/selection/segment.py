@@ -542,9 +542,9 @@ def cut_segments(table: ScoreTable, config: SegmentConfig
         if width == 0.0:
             info["note"] = "the view never changed: one segment"
     if not anchored:
-        # in segment lengths, within the row's own bin (the last bin holds the end of the drive)
-        unit = along / width if width > 0 else np.full(n, 0.5)
-        coord = np.clip(unit, raw, raw + 1.0 - 1e-9) if width > 0 else raw + unit
+        # in segment lengths, within the row's own bin (the last bin holds the end of the drive);
+        # a drive of length 0 is one segment, every row at its middle
+        coord = np.asarray(np.clip(along / width, raw, raw + 1.0 - 1e-9) if width > 0 else raw + 0.5, np.float64)
     # relabel to consecutive ids (bins without frames are not segments)
     change = np.concatenate([[0], (np.diff(raw) != 0).astype(np.int64)])
     seg = np.cumsum(change).astype(np.int64)

@@ -109,7 +109,7 @@ def choose_in_segment(
     digits: int | None = MS_DIGITS,
     prepare: Callable[[list[int]], None] | None = None,
     score_alone: bool = True,
-    coord: NDArray[np.float64] | None = None,
+    coord: Sequence[float] | None = None,
     centre_tolerance: float = 0.0,
 ) -> tuple[int | None, dict[int, MSState]]:
     """The winning row of one segment, and the MS state of every candidate row.
@@ -142,7 +142,7 @@ def choose_in_segment(
     todo = list(rows)
     if shortlist is not None:
         todo = shortlist_rows(todo, [upper[r] for r in todo], shortlist,
-                              None if coord is None else [float(coord[r]) for r in todo], centre_tolerance)
+                              None if coord is None else [coord[r] for r in todo], centre_tolerance)
     order = sorted(todo, key=lambda r: (-upper[r], r))
     if not score_alone and len(order) == 1 and min_ms <= 0:
         return order[0], states

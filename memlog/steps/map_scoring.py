@@ -211,7 +211,7 @@ def choose_chunk(log: str, config: ScoreConfig, window: FrameWindow, jobs: list[
             winner, states = choose_in_segment(list(range(n)), ss, es, score, weights=weights, min_ms=min_ms,
                                                ms_max=ms_max, shortlist=shortlist, prepare=loader.plan,
                                                score_alone=score_alone,
-                                               coord=None if job.coord is None else np.asarray(job.coord),
+                                               coord=job.coord,
                                                centre_tolerance=centre_tolerance)
             results.append(SegmentResult(winner, [states[i] for i in range(n)]))
     return results
