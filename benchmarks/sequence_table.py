@@ -66,6 +66,9 @@ class Drive:
         self.frame_index = z["frame_index"]
         self.stamp_ns = z["stamp_ns"]
         self.xyz = z["xyz"]
+        # the frame index with the drive's stops left out (memlog's moving_index); the frame
+        # index itself for caches written before it
+        self.moving: np.ndarray = z["moving"] if "moving" in z else self.frame_index
         self.variant = variant
         self.desc: np.ndarray = self.raw
 
@@ -83,6 +86,8 @@ def _describe(log: Path, cache: Path) -> dict[str, np.ndarray]:
     t, _report = describe_log(log, make_describer("thumbnail"))
     xyz = np.stack([t.positions[c] for c in ("x", "y", "z")], axis=1) if "x" in t.positions else np.zeros((len(t), 0))
     out = {"raw": t.descriptors, "frame_index": t.frame_index, "stamp_ns": t.stamp_ns, "xyz": xyz}
+    if t.moving_index is not None:
+        out["moving"] = t.moving_index
     np.savez(path, **out)
     return out
 

@@ -76,6 +76,28 @@ def test_reads_files_of_the_earlier_layout(tmp_path: Path) -> None:
     assert stored_dtype(tmp_path / "old.parquet") == "float32"
 
 
+def test_moving_index_round_trip_and_files_without_it(tmp_path: Path) -> None:
+    """``moving_index`` is stored as a non-null int64 column and read back as written; a file
+    without the column (written before it) reads with ``moving_index`` None, and a cache of it
+    is not reused (it would match along the frame index)."""
+    from dataclasses import replace
+
+    t = _table()
+    mi = t.frame_index - np.repeat(np.arange(10) * 3, 5)  # stops left out: a made-up but valid series
+    path = write_descriptors(tmp_path / "m.parquet", replace(t, moving_index=mi))
+    f = pq.read_table(path)
+    assert f.schema.field("moving_index").type == pa.int64() and not f.schema.field("moving_index").nullable
+    assert f.column("moving_index").to_pylist() == mi.tolist()
+    back = read_descriptors(path)
+    assert back.moving_index is not None and back.moving_index.dtype == np.int64
+    np.testing.assert_array_equal(back.moving_index, mi)
+    old = write_descriptors(tmp_path / "old.parquet", t)
+    assert "moving_index" not in pq.read_table(old).column_names
+    assert read_descriptors(old).moving_index is None
+    with pytest.raises(DescriptorError, match="moving_index"):
+        replace(t, moving_index=mi[:-1])
+
+
 def test_float16_round_trip(tmp_path: Path) -> None:
     t = _table(n=40, dim=64)
     t.descriptors[0, :3] = [1e-6, -3e-5, 0.0]  # below float16's normal range

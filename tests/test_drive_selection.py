@@ -85,6 +85,57 @@ def test_stops_are_found_from_the_images_not_from_time() -> None:
     assert still[1:].tolist() == want[1:].tolist()
 
 
+def test_moving_index_counts_only_the_frames_that_moved() -> None:
+    """The frame index minus the frames spent standing, from the images: a strip drive read with a
+    stride of 2 (frame indices 0, 2, 4, ...) with two stops; the expectation counts, in the strip
+    coordinate, the frames whose position equals their predecessor's (each stands for 2 frames)."""
+    from memlog.errors import SelectionError
+    from memlog.scoring.scorer import view_steps
+    from memlog.selection.segment import moving_index, still_rows
+
+    strip = _strip(900)
+    x = np.concatenate([np.arange(0, 120, 4.0), np.full(15, 120.0), np.arange(124, 300, 4.0), np.full(9, 300.0),
+                        np.arange(302, 400, 2.0)])
+    index = np.arange(len(x)) * 2
+    still = still_rows(view_steps(_drive(strip, x)))
+    repeat = np.r_[False, x[1:] == x[:-1]]
+    assert still.tolist() == repeat.tolist()
+    want = index - 2 * np.cumsum(repeat)
+    np.testing.assert_array_equal(moving_index(index, still), want)
+    assert len(np.unique(want[x == 120.0])) == 1 and len(np.unique(want[x == 300.0])) == 1  # a stop: one value
+    np.testing.assert_array_equal(moving_index([0, 2, 4, 6, 8], [False, False, True, True, False]), [0, 2, 2, 2, 4])
+    assert not still_rows(view_steps(_drive(strip, x)), still_distance=0.0).any()
+    with pytest.raises(SelectionError, match="5 frame indices but 4 still flags"):
+        moving_index(np.arange(5), np.zeros(4, bool))
+
+
+def test_the_map_and_a_described_query_carry_the_moving_index(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A log whose frame 1 repeats three times (a stop, identical images): the query's descriptor
+    table and the map's carry the frame index with the stop left out (what sequence matching runs
+    along, tested in ``test_sequence``)."""
+    from memlog.descriptors.extract import describe_log
+    from memlog.descriptors.registry import make_describer
+    from memlog.outputs.descriptor_table import read_descriptors
+    from memlog.selection.config import SelectionConfig
+    from memlog.steps.map import MapConfig, make_map
+    from tests.conftest import repeating_log
+    from tests.stand_in import use_stand_in
+
+    use_stand_in(monkeypatch)
+    log = tmp_path / "stop.mcap"
+    repeating_log(log)  # source frames 0, 1, 1, 1, 2, 3, 0, 1
+    want = [0, 1, 1, 1, 2, 3, 4, 5]
+    t, _report = describe_log(log, make_describer("thumbnail"))
+    assert t.moving_index is not None and t.moving_index.tolist() == want
+    res = make_map(log, tmp_path / "m.mcap", MapConfig(select=SelectionConfig(keep_fraction=0.75),
+                                                        descriptor="thumbnail"))
+    assert res.descriptors is not None
+    m = read_descriptors(res.descriptors)
+    assert m.moving_index is not None and len(m) >= 4
+    assert m.moving_index.tolist() == [want[i] for i in m.frame_index]
+    assert sum(1 for i in m.frame_index if 1 <= i <= 3) <= 1  # the stop holds one map frame
+
+
 def test_a_crawl_gets_fewer_map_frames_than_every_kth_frame_gives_it() -> None:
     """Creeping at 0.5 px per frame, then driving at 8 px per frame: a view-change map puts fewer
     frames on the crawl than every k-th frame does (which follows the frame count). (The measure

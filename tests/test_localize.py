@@ -245,7 +245,8 @@ def _nordland_map(path: Path, step: int = 1) -> Path:
     w = fit_whitening(t.descriptors)
     keep = np.arange(0, len(t), step)
     table = DescriptorTable([t.topic[i] for i in keep], t.frame_index[keep], t.log_time_ns[keep], t.stamp_ns[keep],
-                            w.apply(t.descriptors)[keep], WhitenedDescriber(d, w).meta(), extra=t.extra, whitening=w)
+                            w.apply(t.descriptors)[keep], WhitenedDescriber(d, w).meta(), extra=t.extra, whitening=w,
+                            moving_index=None if t.moving_index is None else t.moving_index[keep])
     return write_descriptors(path, table)
 
 
@@ -279,11 +280,18 @@ def test_cli_localizes_the_winter_drive_as_sequences(nordland_maps: dict[str, Pa
     assert main(["-q", "localize", full, winter, "-o", str(tmp_path / "seq.parquet"),
                  "--annotate", str(tmp_path / "seq.mcap")]) == 0
     assert main(["-q", "localize", full, winter, "-o", str(tmp_path / "single.parquet"), "--sequence", "0"]) == 0
+    assert main(["-q", "localize", full, winter, "-o", str(tmp_path / "kept.parquet"), "--keep-stops"]) == 0
     seq, single = _recall_at_1(tmp_path / "seq.parquet"), _recall_at_1(tmp_path / "single.parquet")
-    # measured: single frames 0.318 (the README's whitened full map), sequences 0.723
+    # measured: single frames 0.318 (the README's whitened full map), sequences 0.715 (stops left
+    # out), 0.723 along the frame index (--keep-stops, as before stops were left out)
     assert single < 0.35 and seq > 0.65, (single, seq)
+    assert _recall_at_1(tmp_path / "kept.parquet") == pytest.approx(0.723, abs=0.002)
     t = pq.read_table(tmp_path / "seq.parquet")
     meta = json.loads(t.schema.metadata[b"memlog.sequence"])
+    kept_meta = json.loads(pq.read_table(tmp_path / "kept.parquet").schema.metadata[b"memlog.sequence"])
+    # the winter drive stands at stations: those frames take their stop's match
+    assert meta["stops"] is True and meta["standing_rows"] > 100 and meta["asked"]["stops"] is True
+    assert kept_meta["stops"] is False and kept_meta["standing_rows"] == 0 and kept_meta["asked"]["stops"] is False
     assert meta["length"] == 10 and meta["mode"] == "offline" and meta["candidates"] == 3
     assert meta["coordinate"] == "frames" and meta["speeds"] == [0.0, 3.0] and meta["fallback"] is None
     assert meta["coordinate_note"] == "no positions in both drives: matched in frames"
@@ -333,7 +341,17 @@ def test_cli_causal_and_sparse_maps(nordland_maps: dict[str, Path], tmp_path: Pa
     assert meta["candidates"] == 5 and "5 frame(s) with fewer than 5 frames" in meta["fallback"]
     rows = t.to_pydict()
     by_query = {q: how for q, how in zip(rows["query_id"], rows["matched_by"])}
-    assert [by_query[i] for i in range(7)] == ["single frame"] * 5 + ["causal sequence"] * 2
+    # the winter drive stands still for its first frames (pixel-identical here): a stop is one place, its
+    # frames take its first frame's match, and a causal window needs 5 moving frames before the query frame
+    from memlog.io import open_log
+
+    with open_log(winter) as r:
+        pixels = [f.decode_bgr() for f, _ in zip(r.frames(), range(30))]
+    moved = np.cumsum([0] + [not np.array_equal(a, b) for a, b in zip(pixels, pixels[1:])])
+    assert moved[5] == 0  # the check below is about stops
+    assert [by_query[i] for i in range(30)] == ["causal sequence" if m >= 5 else "single frame" for m in moved]
+    top = {q: ref for q, ref, rank in zip(rows["query_id"], rows["ref_id"], rows["rank"]) if rank == 0}
+    assert all(top[i] == top[0] for i in range(30) if moved[i] == 0)
     assert _recall_at_1(tmp_path / "c.parquet") > 0.5  # measured 0.60
 
 
@@ -358,6 +376,7 @@ def test_cli_a_single_image_is_matched_as_a_frame(nordland_maps: dict[str, Path]
     (["--sequence", "ten"], "--sequence: expected a whole number"),
     (["--sequence", "0", "--causal"], "--causal set(s) how sequences are matched, but --sequence 0"),
     (["--sequence", "0", "--speeds", "0:2", "--sequence-k", "4"], "--speeds, --sequence-k set(s)"),
+    (["--sequence", "0", "--keep-stops"], "--keep-stops set(s) how sequences are matched"),
     (["--speeds", "3:1"], "--speeds: must be MIN:MAX with 0 <= MIN <= MAX"),
     (["--speeds=-1:2"], "--speeds: must be MIN:MAX"),
     (["--speeds", "1:2:3"], "--speeds: expected MIN:MAX"),

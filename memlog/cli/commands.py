@@ -472,10 +472,15 @@ def add_sequence_flags(p: Any) -> None:
     g.add_argument("--max-gap", type=positive_float, metavar="S",
                    help="a gap of more than S seconds between query stamps starts a new run (sequences never cross "
                         "one; default: 10 x the median frame interval)")
+    g.add_argument("--keep-stops", action="store_true",
+                   help="match along the frame index as recorded, every frame on its own (default: where the camera "
+                        "stood still, seen from the images, the stop counts as one place and its frames take the "
+                        "match of its first frame; frames coordinate only)")
 
 
 _SEQUENCE_FLAGS = {"causal": "--causal", "speeds": "--speeds", "sequence_k": "--sequence-k",
-                   "coordinate": "--coordinate", "sequence_path": "--sequence-path", "max_gap": "--max-gap"}
+                   "coordinate": "--coordinate", "sequence_path": "--sequence-path", "max_gap": "--max-gap",
+                   "keep_stops": "--keep-stops"}
 
 
 def sequence_config(args: argparse.Namespace) -> Any:
@@ -495,6 +500,8 @@ def sequence_config(args: argparse.Namespace) -> Any:
             kw[key] = v
     if args.causal:
         kw["causal"] = True
+    if getattr(args, "keep_stops", False):
+        kw["stops"] = False
     try:
         return SequenceConfig(**kw)
     except ConfigError as exc:
@@ -521,6 +528,8 @@ def cmd_localize(args: argparse.Namespace) -> int:
     sq = res.sequence
     how = (f"{sq['mode']} sequences of {sq['length']} frames, {sq['coordinate']}, speeds "
            f"{sq['speeds'][0]:g}..{sq['speeds'][1]:g}" if sq.get("sequence_queries") else "single frames")
+    if sq.get("standing_rows"):
+        how += f"; {sq['standing_rows']} frame(s) of a standing camera matched as their stop's first frame"
     info(f"{res.n_queries} query frames matched against {res.n_map} map frames "
          f"({res.search['method']} search; {how}); {t * 1e3:.3f} ms per query")
     for name, timing in (res.search_timing or {}).items():

@@ -10,7 +10,7 @@ descriptors of the kept frames only.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -26,8 +26,10 @@ from memlog.io.open import open_log
 from memlog.io.positions import PositionTrack, read_track
 from memlog.io.records import ReadReport
 from memlog.progress import progress
+from memlog.scoring.scorer import view_steps, view_vector
+from memlog.selection.segment import moving_index, still_rows
 
-__all__ = ["describe_frames", "build_table", "describe_log", "ReferenceDescribing"]
+__all__ = ["describe_frames", "build_table", "describe_log", "moving_indices", "ReferenceDescribing"]
 
 
 def _batches(frames: Iterable[Frame], n: int) -> Iterator[list[Frame]]:
@@ -42,10 +44,12 @@ def _batches(frames: Iterable[Frame], n: int) -> Iterator[list[Frame]]:
 
 
 def describe_frames(
-    frames: Iterable[Frame], describer: Describer, reader: LogReader | None = None, batch: int = 16
+    frames: Iterable[Frame], describer: Describer, reader: LogReader | None = None, batch: int = 16,
+    views: list[np.ndarray] | None = None,
 ) -> tuple[list[Frame], np.ndarray]:
     """Descriptors of ``frames`` ([N, dim] float32); frames that do not decode are reported
-    through ``reader`` (when given) and left out."""
+    through ``reader`` (when given) and left out. ``views``: receives each described frame's
+    view vector (:func:`memlog.scoring.scorer.view_vector`), for where the drive stood still."""
     kept: list[Frame] = []
     rows: list[np.ndarray] = []
     for group in _batches(frames, batch):
@@ -57,10 +61,26 @@ def describe_frames(
             except ImageDecodeError as exc:
                 if reader is not None:
                     reader.decode_error(f, exc)
+        if views is not None:
+            views.extend(view_vector(img).astype(np.float32) for img in imgs)
         if imgs:
             rows.append(describer.describe(imgs))
     desc = np.concatenate(rows) if rows else np.zeros((0, describer.dim), np.float32)
     return kept, desc
+
+
+def moving_indices(frames: Sequence[Frame], views: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
+    """Each frame's index with its topic's stops left out
+    (:func:`memlog.selection.segment.moving_index`), from the frames' view vectors (``views``,
+    one per frame; each topic's frames in drive order, consecutive as far as they were read)."""
+    v = np.asarray(views, dtype=np.float64).reshape(len(frames), -1)
+    index = np.array([f.index for f in frames], dtype=np.int64)
+    topics = np.array([f.topic for f in frames], dtype=object)
+    out = index.copy()
+    for t in dict.fromkeys(topics.tolist()):
+        rows = np.flatnonzero(topics == t)
+        out[rows] = moving_index(index[rows], still_rows(view_steps(v[rows])))
+    return out
 
 
 def build_table(
@@ -72,9 +92,11 @@ def build_table(
     track: PositionTrack | None = None,
     extra: dict[str, Any] | None = None,
     whitening: Whitening | None = None,
+    moving: np.ndarray | None = None,
 ) -> DescriptorTable:
     """A DescriptorTable of described frames, with their scores and interpolated positions.
-    With ``whitening``, ``descriptors`` are already whitened by it and the table carries it."""
+    With ``whitening``, ``descriptors`` are already whitened by it and the table carries it;
+    ``moving``: the frames' :func:`moving_indices` (the table's ``moving_index``)."""
     def score(name: str) -> np.ndarray:
         if scores is None:
             return np.full(len(frames), np.nan)
@@ -108,6 +130,7 @@ def build_table(
         positions=positions,
         extra=ex,
         whitening=whitening,
+        moving_index=moving,
     )
 
 
@@ -130,9 +153,11 @@ def describe_log(
         track = read_track(reader)
         frames = progress(reader.frames(w.topics, w.start_ns, w.end_ns, w.stride), total=reader.count_frames(w),
                           desc="describe", unit="frame")
-        kept, desc = describe_frames(frames, describer, reader)
+        views: list[np.ndarray] = []
+        kept, desc = describe_frames(frames, describer, reader, views=views)
         extra = {"log": str(reader.path), "log_identity": log_identity(log), "window": w.to_dict()}
-        return build_table(kept, desc, describer, scores=scores, track=track, extra=extra), reader.report
+        return build_table(kept, desc, describer, scores=scores, track=track, extra=extra,
+                           moving=moving_indices(kept, views)), reader.report
 
 
 class ReferenceDescribing:

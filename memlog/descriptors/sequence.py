@@ -59,6 +59,20 @@ being outside ``exclude`` reference frames of the best (a different place, for `
 truth window's half-width). As a confidence it beat the score itself (AUC-PR 0.65 against 0.48
 on Nordland).
 
+**Stops.** A camera standing still (at a station, a junction, a red light) sees one place
+for many frames. Along the frame index such a stop stretches one place over as many frames as it
+lasted, and a window of frames around it covers little drive. With ``stops`` (the default) and
+the ``frames`` coordinate, each drive runs along its *moving index*
+(:attr:`DescriptorTable.moving_index`: the frame index minus the frames spent standing, found
+from the images by :func:`memlog.selection.segment.still_rows`; tables without it keep the frame
+index), and a query frame that stood still since its run's previous frame is not matched on its
+own: it takes the result of its stop's first frame (``standing``; ``info["standing_rows"]``).
+Measured on Nordland variants (winter against summer drives with stations, added stops, crawls
+and 2-3x stretches; ``benchmarks/drive_maps.py``), R@1 of the full map 0.613 -> 0.631 on the
+mixed drive and 0.594 -> 0.604 on the recorded one, of the default half map 0.590 -> 0.616 and
+0.574 -> 0.606, within 0.02 of the full map on all four drives. ``time`` and ``positions`` are
+left as they are (a stop adds nothing to the distance travelled).
+
 **Runs and the fallback.** A query is cut into runs of rows whose coordinates do not decrease
 (and, for logs, whose stamps increase with gaps below a limit: :func:`drive_runs`); windows never
 cross a run boundary and are cut at its ends. Offline, a run shorter than ``length + 1`` frames
@@ -94,7 +108,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "SequenceConfig", "SequenceMatch", "match_sequences", "match_tables", "drive_coordinates", "drive_runs",
-    "resolve_coordinate", "has_positions", "reference_unit", "COORDINATES", "PATHS", "STAT_SAMPLE",
+    "resolve_coordinate", "has_positions", "reference_unit", "standing_rows", "uses_stops", "COORDINATES", "PATHS",
+    "STAT_SAMPLE",
 ]
 
 log = logging.getLogger(__name__)
@@ -141,6 +156,8 @@ class SequenceConfig:
     full map (Nordland, winter against summer, +-10 frames, full map R@1 0.723: the map of every
     2nd frame 0.655 -> 0.739 with +-20, the other half 0.653 -> 0.669, every 4th frame 0.410 ->
     0.430 with +-20; windows of 4x were worse on drives that change speed; ``info["length_used"]``).
+    ``stops``: in the ``frames`` coordinate, drives run along their moving index and a standing
+    query frame takes its stop's match (the module doc's "Stops").
     """
 
     length: int = 10
@@ -155,6 +172,7 @@ class SequenceConfig:
     normalize: bool = True
     block: int = 128
     scale_length: bool = True
+    stops: bool = True
 
     def __post_init__(self) -> None:
         check_ints(self, {"length": 0, "candidates": 1, "block": 1})
@@ -180,8 +198,8 @@ class SequenceConfig:
         if isinstance(self.exclude, bool) or not isinstance(self.exclude, (int, float)) or not (
                 math.isfinite(self.exclude) and self.exclude >= 0):
             raise ConfigError(f"exclude must be a number >= 0, got {self.exclude!r}")
-        if not isinstance(self.scale_length, bool):
-            raise ConfigError("scale_length must be true or false")
+        if not isinstance(self.scale_length, bool) or not isinstance(self.stops, bool):
+            raise ConfigError("scale_length and stops must be true or false")
         if self.length == 0 and self.causal:
             raise ConfigError("causal needs a sequence: length (--sequence) must be >= 1")
 
@@ -261,10 +279,18 @@ def _topic_groups(table: DescriptorTable) -> list[I64]:
     return [np.flatnonzero(arr == t).astype(np.int64) for t in topics]
 
 
-def drive_coordinates(table: DescriptorTable, coordinate: str) -> F64:
-    """The along-drive coordinate of every row: ``frames`` (frame index), ``time`` (stamp, s) or
-    ``positions`` (distance travelled along the topic's frames in frame order, m)."""
+def uses_stops(config: SequenceConfig, coordinate: str) -> bool:
+    """Stops are left out of the match (``config.stops`` and the ``frames`` coordinate)."""
+    return config.enabled and config.stops and coordinate == "frames"
+
+
+def drive_coordinates(table: DescriptorTable, coordinate: str, stops: bool = False) -> F64:
+    """The along-drive coordinate of every row: ``frames`` (frame index; with ``stops`` the
+    moving index where the table has one), ``time`` (stamp, s) or ``positions`` (distance
+    travelled along the topic's frames in frame order, m)."""
     if coordinate == "frames":
+        if stops and table.moving_index is not None:
+            return table.moving_index.astype(np.float64)
         return table.frame_index.astype(np.float64)
     if coordinate == "time":
         return _stamps_s(table)
@@ -282,6 +308,20 @@ def drive_coordinates(table: DescriptorTable, coordinate: str) -> F64:
         order = rows[np.argsort(table.frame_index[rows], kind="stable")]
         step = np.r_[0.0, np.linalg.norm(np.diff(xy[order], axis=0), axis=1)]
         out[order] = np.cumsum(step)
+    return out
+
+
+def standing_rows(table: DescriptorTable, runs: npt.ArrayLike | None = None) -> BoolArray:
+    """Rows whose camera stood still since the previous row of their topic (and run, ``runs``:
+    labels as :func:`drive_runs` gives): the same moving index; none without one."""
+    out = np.zeros(len(table), dtype=bool)
+    if table.moving_index is None:
+        return out
+    mi = table.moving_index
+    lab = np.zeros(len(table), np.int64) if runs is None else np.asarray(runs, dtype=np.int64)
+    for rows in _topic_groups(table):
+        a, b = rows[:-1], rows[1:]
+        out[b] = (mi[b] == mi[a]) & (lab[b] == lab[a])
     return out
 
 
@@ -683,6 +723,7 @@ def match_sequences(
     index: IVFIndex | None = None,
     nprobe: int | None = None,
     rerank: int | None = None,
+    standing: npt.ArrayLike | None = None,
 ) -> SequenceMatch:
     """Match the query drive against the reference as sequences (see the module doc).
 
@@ -696,6 +737,8 @@ def match_sequences(
     coordinate units (default: the median positive spacing of ``reference_coord`` over all
     rows). ``index``: an approximate index over the (masked) map for the candidates (default:
     exact search; ``nprobe``/``rerank`` its settings); ``reference`` is then its database.
+    ``standing`` (bool ``[Q]``): query rows whose camera stood still since the previous row of
+    their run; they take that stop's first row's result (the first row of a run never stands).
     """
     cfg = config or SequenceConfig()
     if k < 1:
@@ -722,6 +765,18 @@ def match_sequences(
     labels = np.zeros(n_q, np.int64) if runs is None else np.asarray(runs).astype(np.int64)
     if labels.shape != (n_q,):
         raise DescriptorError(f"runs must have one label per query row, got shape {labels.shape}")
+    if standing is not None:
+        stand = np.asarray(standing, dtype=bool)
+        if stand.shape != (n_q,):
+            raise DescriptorError(f"standing must have one flag per query row, got shape {stand.shape}")
+        first = _run_bounds(labels, qc)[0] == np.arange(n_q)
+        stand = stand & ~first
+        if stand.any() and cfg.enabled:
+            keep = ~stand
+            sub = match_sequences(q[keep], qc[keep], reference, reference_coord, config, k=k, ref_mask=ref_mask,
+                                  runs=labels[keep], ref_unit=ref_unit, coordinate=coordinate, index=index,
+                                  nprobe=nprobe, rerank=rerank)
+            return _expand(sub, keep, q, db, n_ref)
     kk = min(k, max(1, n_m))
     info: dict[str, Any] = {**cfg.to_dict(), "coordinate": coordinate, "k": k}
 
@@ -828,6 +883,27 @@ def match_sequences(
     return SequenceMatch(indices, scores, sims, margin, speed, window, seq, info)
 
 
+def _expand(sub: SequenceMatch, keep: BoolArray, q: F32, db: Database, n_ref: int) -> SequenceMatch:
+    """The result of every query row from that of the rows matched (``keep``): a standing row
+    takes the result of the last matched row before it, with its own similarities."""
+    n_q = len(keep)
+    last = np.maximum.accumulate(np.where(keep, np.arange(n_q), 0))
+    src = (np.cumsum(keep) - 1)[last]
+    indices = sub.indices[src]
+    db_of_full = np.arange(max(n_ref, 1), dtype=np.int64)
+    if db.index is not None:
+        db_of_full = np.full(max(n_ref, 1), -1, dtype=np.int64)
+        db_of_full[db.index] = np.arange(len(db.index))
+    sims = np.full(indices.shape, -np.inf, dtype=np.float32)
+    qr, kr = np.nonzero(indices >= 0)
+    if len(qr):
+        sims[qr, kr] = _rescore(q, db.rows, qr.astype(np.int64), db_of_full[indices[qr, kr]]).astype(np.float32)
+    seq = sub.sequence[src]
+    info = {**sub.info, "standing_rows": int((~keep).sum()), "sequence_queries": int(seq.sum()),
+            "single_queries": int(n_q - seq.sum())}
+    return SequenceMatch(indices, sub.scores[src], sims, sub.margin[src], sub.speed[src], sub.window[src], seq, info)
+
+
 def _median_step(c: F64) -> float:
     s = np.diff(np.sort(c))
     s = s[s > 0]
@@ -861,11 +937,13 @@ def match_tables(
     known). Results are in the query table's row order."""
     cfg = config or SequenceConfig()
     coordinate, note = resolve_coordinate(cfg.coordinate, query, reference)
-    qc = drive_coordinates(query, coordinate)
+    stops = uses_stops(cfg, coordinate)
+    qc = drive_coordinates(query, coordinate, stops)
     labels, gap = drive_runs(query, cfg.max_gap_s)
+    standing = standing_rows(query, labels) if stops else None
     # query rows topic by topic (a run never mixes topics), each in table order
     perm = np.concatenate(_topic_groups(query)) if len(query) else np.zeros(0, np.int64)
-    rc = drive_coordinates(reference, coordinate)
+    rc = drive_coordinates(reference, coordinate, stops)
     unit = reference_unit(reference, rc)
     groups = _topic_groups(reference)
     if len(groups) > 1:  # several cameras: each topic's coordinates far from the others'
@@ -874,11 +952,13 @@ def match_tables(
             rc[rows] = rc[rows] + n * 4.0 * span
     res = match_sequences(query.descriptors[perm], qc[perm], index.db if index is not None else reference.descriptors,
                           rc, cfg, k=k, runs=labels[perm], ref_unit=unit, coordinate=coordinate, index=index,
-                          nprobe=nprobe, rerank=rerank)
+                          nprobe=nprobe, rerank=rerank, standing=None if standing is None else standing[perm])
     inv = np.empty_like(perm)
     inv[perm] = np.arange(len(perm))
     res = SequenceMatch(res.indices[inv], res.scores[inv], res.similarities[inv], res.margin[inv], res.speed[inv],
                         res.window[inv], res.sequence[inv], res.info)
     res.info["coordinate_note"] = note
     res.info["max_gap_s"] = gap
+    res.info["stops"] = stops
+    res.info.setdefault("standing_rows", 0)
     return res

@@ -36,6 +36,10 @@ class DescriptorTable:
     float64 arrays (NaN = unknown). ``extra`` is caller metadata stored as JSON.
     ``whitening`` is the transform the descriptors were whitened with when the table carries it
     (a map does; a query table records only its sha256 in ``meta.whitening``).
+    ``moving_index``: each frame's index with the drive's stops left out
+    (:func:`memlog.selection.segment.moving_index`: a standing camera's frames share one value),
+    None when it is not known (the table was written before it was recorded, or frames were
+    described out of order); sequence matching runs along it.
     """
 
     topic: list[str]
@@ -51,6 +55,7 @@ class DescriptorTable:
     extra: dict[str, Any] = field(default_factory=dict)
     memlog_version: str | None = None
     whitening: Whitening | None = None
+    moving_index: I64 | None = None
 
     def __post_init__(self) -> None:
         if self.whitening is not None and (self.whitening.sha256 != self.meta.whitening
@@ -71,6 +76,8 @@ class DescriptorTable:
             val = getattr(self, name)
             setattr(self, name, np.full(n, np.nan) if val is None else np.asarray(val, dtype=np.float64))
         self.positions = {k: np.asarray(v, dtype=np.float64) for k, v in self.positions.items()}
+        if self.moving_index is not None:
+            self.moving_index = np.asarray(self.moving_index, dtype=np.int64)
         used = [kind for kind, cols in POSITION_COLUMNS.items() if set(self.positions) & set(cols)]
         unknown = set(self.positions) - {c for cols in POSITION_COLUMNS.values() for c in cols}
         if unknown or len(used) > 1:
@@ -84,6 +91,7 @@ class DescriptorTable:
             "stamp_ns": self.stamp_ns,
             **{s: getattr(self, s) for s in SCORE_COLUMNS},
             **self.positions,
+            **({} if self.moving_index is None else {"moving_index": self.moving_index}),
         }
         for name, col in columns.items():
             if len(col) != n or (isinstance(col, np.ndarray) and col.ndim != 1):

@@ -4,8 +4,9 @@ One row per frame: ``topic`` (string), ``frame_index``, ``log_time_ns``, ``stamp
 (int64), the memorability scores ``ms``/``ss``/``es`` (float64, null when not scored),
 ``descriptor`` (``fixed_size_list<float32 not null>[dim] not null``, or ``float16`` elements
 when written with ``dtype="float16"``) and optional positions, either geographic
-``lat``/``lon``/``alt`` or local ``x``/``y``/``z`` (float64, nullable). In numpy a null float
-is NaN (both directions).
+``lat``/``lon``/``alt`` or local ``x``/``y``/``z`` (float64, nullable), and optionally
+``moving_index`` (int64: the frame index with the drive's stops left out, what sequence matching
+runs along; absent in files written before it). In numpy a null float is NaN (both directions).
 
 Storage: the descriptor column is plain-encoded (no dictionary) and zstd-compressed, in row
 groups of about 16 MiB of descriptors, so a reader can stream it; the topic column is
@@ -126,6 +127,8 @@ def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable, *, d
         for name in cols:
             if name in table.positions:
                 add(name, pa.array(table.positions[name], type=pa.float64(), from_pandas=True))
+    if table.moving_index is not None:
+        add("moving_index", pa.array(table.moving_index, type=pa.int64()), nullable=False)
     schema_meta = _meta_to_schema(table.meta, table.extra, table.memlog_version or __version__, table.whitening)
     schema_meta[b"memlog.dtype"] = dtype.encode()
     pa_table = pa.Table.from_arrays(arrays, schema=pa.schema(fields, metadata=schema_meta))
@@ -275,6 +278,7 @@ def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
         extra=extra,
         memlog_version=version or None,
         whitening=whitening,
+        moving_index=ints("moving_index") if "moving_index" in table.column_names else None,
     )
 
 
@@ -295,8 +299,8 @@ def _strings(col: pa.ChunkedArray, path: Path) -> list[str]:
 def read_cached(path: str | os.PathLike[str], log: str | os.PathLike[str], meta: DescriptorMeta,
                 window: FrameWindow) -> DescriptorTable | None:
     """The descriptor table cached at ``path`` when ``describe_log`` made it from ``log`` (same
-    identity: path, size, modification time), with ``window`` and a describer compatible with
-    ``meta``; else None, saying why (``window.topics`` None: the topics the table was made from)."""
+    identity: path, size, modification time), with ``window``, a describer compatible with
+    ``meta`` and the frames' ``moving_index``; else None, saying why (``window.topics`` None: the topics the table was made from)."""
     p = Path(path)
     if not p.is_file():
         return None
@@ -312,6 +316,9 @@ def read_cached(path: str | os.PathLike[str], log: str | os.PathLike[str], meta:
     topics = window.topics if window.topics is not None else tuple(t.extra.get("window", {}).get("topics") or ())
     if t.extra.get("window") != FrameWindow(tuple(topics), window.start_ns, window.end_ns, window.stride).to_dict():
         info(f"not reusing {p}: it was made with other topics, time window or stride")
+        return None
+    if t.moving_index is None:
+        info(f"not reusing {p}: it has no moving_index (written before stops were recorded)")
         return None
     info(f"reusing descriptors {p} (same log, window and descriptor)")
     return t

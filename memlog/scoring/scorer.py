@@ -37,7 +37,7 @@ from memlog.errors import ScoringError
 from memlog.models.resmem import FRAME
 from memlog.scoring.config import ScoreConfig
 
-__all__ = ["Scorer", "FrameScore", "SharedScore", "CheapStage", "resize_frame", "STAGES", "pixels_digest", "view_vector"]
+__all__ = ["Scorer", "FrameScore", "SharedScore", "CheapStage", "resize_frame", "STAGES", "pixels_digest", "view_vector", "view_steps", "blank_views"]
 
 STAGES = ("staticity", "entropy", "memorability")
 T = TypeVar("T")
@@ -134,6 +134,27 @@ def view_vector(img: npt.NDArray[Any]) -> npt.NDArray[np.float64]:
     v -= v.mean()
     n = float(np.linalg.norm(v))
     return v / n if n > 0 else v
+
+
+def blank_views(view: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+    """Rows of ``view`` ([N, 512] view vectors) that are blank (a flat frame: zero vector)."""
+    v = np.asarray(view, dtype=np.float64)
+    return np.asarray(np.linalg.norm(v, axis=1) < 1e-6, dtype=bool)
+
+
+def view_steps(view: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """How much the view changed from each row of ``view`` ([N, 512] view vectors, rows in drive
+    order) to the next: the cosine distance to the predecessor (0 for the first row, 0 between two
+    blank frames, 1 between a blank and a non-blank one; NaN where a vector is unknown)."""
+    v = np.asarray(view, dtype=np.float64)
+    out = np.zeros(len(v))
+    if len(v) > 1:
+        dots = np.einsum("ij,ij->i", v[1:], v[:-1])
+        blank = blank_views(v)
+        both = blank[1:] & blank[:-1]
+        one = blank[1:] ^ blank[:-1]
+        out[1:] = np.where(both, 0.0, np.where(one, 1.0, np.clip(1.0 - dots, 0.0, 2.0)))
+    return out
 
 
 def pixels_digest(img: npt.NDArray[Any]) -> bytes:

@@ -91,13 +91,13 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from memlog.errors import ConfigError
+from memlog.errors import ConfigError, SelectionError
 from memlog.selection._checks import finite_number, fraction, positive_int, positive_number
 from memlog.selection.paper import codes_to_reasons, first_failing
 from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
 
 __all__ = ["SegmentConfig", "SegmentDefaults", "SEGMENT_DEFAULTS", "select_segments", "segment_ids", "cut_segments",
-           "shortlist_rows", "upper_bounds", "MS_DIGITS",
+           "shortlist_rows", "upper_bounds", "MS_DIGITS", "still_rows", "moving_index",
            "combined_score", "geometric_score", "percentile_ranks"]
 
 SegmentBy = Literal["auto", "distance", "time", "count", "view"]
@@ -397,6 +397,31 @@ def _view_step(d: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.asarray(np.minimum(chord, VIEW_STEP_CAP), dtype=np.float64)
 
 
+def still_rows(steps: ArrayLike, still_distance: float = SEGMENT_DEFAULTS.still_distance) -> NDArray[np.bool_]:
+    """Rows that stood still: their view changed from the predecessor's by less than
+    ``still_distance`` (``steps``: :func:`memlog.scoring.scorer.view_steps`; unknown steps move;
+    the first row never stands still; ``still_distance <= 0``: none)."""
+    st = np.asarray(steps, dtype=np.float64)
+    if still_distance <= 0 or not len(st):
+        return np.zeros(len(st), dtype=bool)
+    still = np.asarray(np.nan_to_num(st, nan=np.inf) < still_distance, dtype=bool)
+    still[0] = False
+    return still
+
+
+def moving_index(index: ArrayLike, still: ArrayLike) -> NDArray[np.int64]:
+    """The frame index with the stops left out: ``index`` (frame indices of one topic's rows in
+    drive order) minus the frames spent standing still up to each row, where a row that stood
+    still (``still``) stood for all the frames since the previous row. A standing camera's frames
+    share one value, so a drive matched along it does not stretch a stop over many places."""
+    idx = np.asarray(index, dtype=np.int64)
+    st = np.asarray(still, dtype=bool)
+    if idx.shape != st.shape:
+        raise SelectionError(f"moving_index: {idx.shape[0]} frame indices but {st.shape[0]} still flags")
+    gap = np.diff(idx, prepend=idx[:1])
+    return np.asarray(idx - np.cumsum(np.where(st, gap, 0)), dtype=np.int64)
+
+
 def _without_stops(coord: NDArray[np.float64], still: NDArray[np.bool_]) -> NDArray[np.float64]:
     """``coord`` with the steps into still rows removed (a stop lies at one place)."""
     if not still.any():
@@ -488,9 +513,7 @@ def cut_segments(table: ScoreTable, config: SegmentConfig
     if by == "view" and not anchored and table.view is None:
         raise ConfigError("segment by='view' needs the frames' view vectors, but the score table has none")
     steps = table.view_steps()
-    still = np.zeros(n, dtype=bool) if steps is None or config.still_distance <= 0 else (
-        np.nan_to_num(steps, nan=np.inf) < config.still_distance)
-    still[0] = False
+    still = np.zeros(n, dtype=bool) if steps is None else still_rows(steps, config.still_distance)
     if steps is not None:
         info["still_frames"] = int(still.sum())
     n_seg = (

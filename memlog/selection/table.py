@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from memlog.errors import SelectionError
+from memlog.scoring.scorer import blank_views, view_steps
 
 __all__ = ["ScoreTable", "Selection", "Gap", "CRITERIA", "REASONS", "DISTINCT"]
 
@@ -186,23 +187,12 @@ class ScoreTable:
         """Rows whose view vector is blank (a flat frame: zero vector); all False without view vectors."""
         if self.view is None:
             return np.zeros(self.n, dtype=bool)
-        return np.asarray(np.linalg.norm(self.view.astype(np.float64), axis=1) < 1e-6, dtype=bool)
+        return blank_views(self.view)
 
     def view_steps(self) -> NDArray[np.float64] | None:
-        """How much the view changed from each row's predecessor (cosine distance of the view
-        vectors; 0 for the first row, 0 between two blank frames, 1 between a blank and a
-        non-blank one; NaN where a vector is unknown); None without view vectors."""
-        if self.view is None:
-            return None
-        v = self.view.astype(np.float64)
-        out = np.zeros(self.n)
-        if self.n > 1:
-            dots = np.einsum("ij,ij->i", v[1:], v[:-1])
-            blank = self.blank_view()
-            both = blank[1:] & blank[:-1]
-            one = blank[1:] ^ blank[:-1]
-            out[1:] = np.where(both, 0.0, np.where(one, 1.0, np.clip(1.0 - dots, 0.0, 2.0)))
-        return out
+        """How much the view changed from each row's predecessor
+        (:func:`memlog.scoring.scorer.view_steps`); None without view vectors."""
+        return None if self.view is None else view_steps(self.view)
 
 
 @dataclass(eq=False)

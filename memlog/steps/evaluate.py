@@ -45,6 +45,8 @@ from memlog.descriptors.sequence import (
     match_sequences,
     reference_unit,
     resolve_coordinate,
+    standing_rows,
+    uses_stops,
 )
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import Whitening
@@ -181,12 +183,15 @@ class _Matching:
         self.info: dict[str, Any] = {"matching": "sequence" if self.sequence else "single frame"}
         if self.sequence:
             self.coordinate, note = resolve_coordinate(self.seq.coordinate, q_t, ref_t)
-            self.qc = drive_coordinates(q_t, self.coordinate)
-            self.rc = drive_coordinates(ref_t, self.coordinate)
+            stops = uses_stops(self.seq, self.coordinate)
+            self.qc = drive_coordinates(q_t, self.coordinate, stops)
+            self.rc = drive_coordinates(ref_t, self.coordinate, stops)
             self.runs, gap = drive_runs(q_t, self.seq.max_gap_s)
+            self.standing = standing_rows(q_t, self.runs) if stops else None
             self.unit = reference_unit(ref_t, self.rc)
             self.info.update({"sequence": self.seq.to_dict(), "coordinate": self.coordinate,
-                              "coordinate_note": note, "max_gap_s": gap})
+                              "coordinate_note": note, "max_gap_s": gap, "stops": stops,
+                              "standing_rows": 0 if self.standing is None else int(self.standing.sum())})
         self._full: dict[bool, tuple[np.ndarray, np.ndarray]] = {}
 
     def ranked(self, mask: np.ndarray | None, k: int, sequence: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -200,7 +205,7 @@ class _Matching:
             out = (idx, sim.astype(np.float64))
         else:
             sm = match_sequences(self.q, self.qc, self.ref, self.rc, self.seq, k=k, ref_mask=mask, runs=self.runs,
-                                 ref_unit=self.unit, coordinate=self.coordinate)
+                                 ref_unit=self.unit, coordinate=self.coordinate, standing=self.standing)
             sc = sm.scores.copy()
             sc[:, 0] = sm.confidence
             if "fallback" not in self.info and sm.info.get("fallback"):

@@ -204,7 +204,7 @@ def _sequence_record(found: dict[str, Any], cfg: SequenceConfig) -> dict[str, An
     """What the outputs record about sequence matching: the settings asked for, what was used
     (coordinate, speeds searched, the reference's frame spacing) and the fallback, if any."""
     keys = ("coordinate", "coordinate_note", "speeds", "speed_step", "n_speeds", "unit", "runs", "max_gap_s",
-            "sequence_queries", "single_queries", "fallback")
+            "sequence_queries", "single_queries", "fallback", "stops", "standing_rows")
     out = {"asked": cfg.to_dict(), "length": cfg.length, "mode": "causal" if cfg.causal else "offline",
            "candidates": cfg.candidates, "path": cfg.path, **{k: found.get(k) for k in keys}}
     if not cfg.enabled:

@@ -33,6 +33,7 @@ from memlog.descriptors.whitening import MIN_SAMPLES
 from memlog.errors import ConfigError, ImageDecodeError, SelectionError
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow, LogReader
+from memlog.io.frame import Frame
 from memlog.io.identity import same_identity
 from memlog.io.open import open_log
 from memlog.io.positions import PositionTrack, read_track
@@ -44,10 +45,10 @@ from memlog.outputs.descriptor_table import write_descriptors
 from memlog.outputs.maplog import MapLogWriter
 from memlog.progress import info, progress
 from memlog.scoring.config import ScoreConfig
-from memlog.scoring.scorer import view_vector
+from memlog.scoring.scorer import view_steps, view_vector
 from memlog.selection import ScoreTable, Selection
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
-from memlog.selection.segment import SegmentConfig, cut_segments
+from memlog.selection.segment import SegmentConfig, cut_segments, moving_index, still_rows
 from memlog.selection.staged import MSState
 from memlog.steps.map_scoring import CheapFrame, SegmentJob, cheap_frames, choose_chunk, staged_record
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
@@ -258,6 +259,24 @@ def _stageable(cfg: MapConfig) -> bool:
     sel = cfg.select
     return sel.mode == "segment" and sel.combine == "geometric" and not cfg.score.all_scores \
         and cfg.score.mode != "paper" and not sel.needs_distinctiveness
+
+
+def _moving(frames: list[Frame], tables: dict[str, ScoreTable], still_distance: float) -> np.ndarray | None:
+    """The kept frames' index with the drive's stops left out (the stops selection found, from
+    the view vectors of every frame it saw); None when a topic's table has no view vectors."""
+    out = np.zeros(len(frames), dtype=np.int64)
+    lookup: dict[str, dict[int, int]] = {}
+    for t, table in tables.items():
+        if table.view is None:
+            return None
+        mi = moving_index(table.index, still_rows(view_steps(table.view), still_distance))
+        lookup[t] = dict(zip(table.index.tolist(), mi.tolist()))
+    for k, f in enumerate(frames):
+        v = lookup.get(f.topic, {}).get(f.index)
+        if v is None:
+            return None
+        out[k] = v
+    return out
 
 
 def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topic: Records,
@@ -528,7 +547,8 @@ def make_map(
             extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
                      "keep_fraction": sel_cfg.keep_fraction, "descriptor_choice": choice.to_dict()}
             write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra,
-                                                 whitening=white), dtype=cfg.descriptor_dtype)
+                                                 whitening=white, moving=_moving(frames, tables, sel_cfg.still_distance)),
+                              dtype=cfg.descriptor_dtype)
             result.descriptors = dpath
     result.seconds = time.perf_counter() - t0
     return result
