@@ -13,6 +13,7 @@ import pytest
 from memlog.descriptors.auto import AUTO_LEARNED, AUTO_SMALL, choose_descriptor, resolve_descriptor
 from memlog.descriptors.base import DescriptorMeta, check_compatible, l2_normalize
 from memlog.descriptors.registry import make_describer
+from memlog.descriptors.sequence import SequenceConfig
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import (
     WhitenedDescriber,
@@ -167,7 +168,18 @@ def test_map_whitens_by_default_and_localize_applies_the_same_transform(tmp_path
     import pyarrow.csv as pacsv
 
     rows = pacsv.read_csv(tmp_path / "m.csv").to_pylist()
-    assert all(r["ref_id"] == r["query_id"] for r in rows)
+    # the EuRoC slice is a MAV standing on the floor (median optical flow under a pixel over its
+    # 4.7 s): one stop, so with stops left out (the default) every frame takes the stop's first
+    # frame's match, which is that frame itself
+    assert qt.moving_index is not None and not qt.moving_index.any()
+    assert all(r["ref_id"] == 0 for r in rows)
+    # with the stops kept each frame finds itself
+    kept = localize(res.descriptors, log, tmp_path / "m_kept.csv",
+                    LocalizeConfig(k=1, window=FrameWindow((EUROC_TOPIC,)), sequence=SequenceConfig(stops=False)),
+                    query_descriptors=qcache)
+    assert kept.query_descriptors_reused
+    rows = pacsv.read_csv(tmp_path / "m_kept.csv").to_pylist()
+    assert len(rows) == 95 and all(r["ref_id"] == r["query_id"] for r in rows)
     # query descriptors described without the transform are refused (and described again)
     unwhite = DescriptorTable(topic=qt.topic, frame_index=qt.frame_index, log_time_ns=qt.log_time_ns,
                               stamp_ns=qt.stamp_ns, descriptors=raw, meta=make_describer("thumbnail").meta(),
