@@ -26,8 +26,8 @@ from memlog.io.open import open_log
 from memlog.io.positions import PositionTrack, read_track
 from memlog.io.records import ReadReport
 from memlog.progress import progress
-from memlog.scoring.scorer import view_steps, view_vector
-from memlog.selection.segment import moving_index, still_rows
+from memlog.scoring.scorer import view_vector
+from memlog.selection.segment import moving_index_of_views
 
 __all__ = ["describe_frames", "build_table", "describe_log", "moving_indices", "ReferenceDescribing"]
 
@@ -79,7 +79,7 @@ def moving_indices(frames: Sequence[Frame], views: np.ndarray | Sequence[np.ndar
     out = index.copy()
     for t in dict.fromkeys(topics.tolist()):
         rows = np.flatnonzero(topics == t)
-        out[rows] = moving_index(index[rows], still_rows(view_steps(v[rows])))
+        out[rows] = moving_index_of_views(index[rows], v[rows])
     return out
 
 

@@ -879,7 +879,7 @@ def match_sequences(
             for j, i in enumerate(centres):
                 _place(p, int(i), sc[j], xc[j], sp[j], int(valid[j].sum()), k, indices, scores, margin, speed,
                        window, seq)
-    sims = _similarities(q, db, indices, sorted_of_full, order)
+    sims = _similarities(q, db, indices, _db_rows(db, n_ref))
     return SequenceMatch(indices, scores, sims, margin, speed, window, seq, info)
 
 
@@ -890,14 +890,7 @@ def _expand(sub: SequenceMatch, keep: BoolArray, q: F32, db: Database, n_ref: in
     last = np.maximum.accumulate(np.where(keep, np.arange(n_q), 0))
     src = (np.cumsum(keep) - 1)[last]
     indices = sub.indices[src]
-    db_of_full = np.arange(max(n_ref, 1), dtype=np.int64)
-    if db.index is not None:
-        db_of_full = np.full(max(n_ref, 1), -1, dtype=np.int64)
-        db_of_full[db.index] = np.arange(len(db.index))
-    sims = np.full(indices.shape, -np.inf, dtype=np.float32)
-    qr, kr = np.nonzero(indices >= 0)
-    if len(qr):
-        sims[qr, kr] = _rescore(q, db.rows, qr.astype(np.int64), db_of_full[indices[qr, kr]]).astype(np.float32)
+    sims = _similarities(q, db, indices, _db_rows(db, n_ref))
     seq = sub.sequence[src]
     info = {**sub.info, "standing_rows": int((~keep).sum()), "sequence_queries": int(seq.sum()),
             "single_queries": int(n_q - seq.sum())}
@@ -910,13 +903,22 @@ def _median_step(c: F64) -> float:
     return float(np.median(s)) if s.size else 1.0
 
 
-def _similarities(q: F32, db: Database, indices: I64, sorted_of_full: I64, order: I64) -> F32:
-    """Cosine similarity of each query frame to each matched frame (float64 products, pair by pair)."""
+def _db_rows(db: Database, n_ref: int) -> I64:
+    """The row of ``db`` holding each of the ``n_ref`` reference rows (-1: not in the map)."""
+    if db.index is None:
+        return np.arange(max(n_ref, 1), dtype=np.int64)
+    out = np.full(max(n_ref, 1), -1, dtype=np.int64)
+    out[db.index] = np.arange(len(db.index))
+    return out
+
+
+def _similarities(q: F32, db: Database, indices: I64, db_rows: I64) -> F32:
+    """Cosine similarity of each query frame to each matched frame (``indices``: reference rows,
+    ``db_rows``: :func:`_db_rows`; float64 products, pair by pair)."""
     out = np.full(indices.shape, -np.inf, dtype=np.float32)
     qr, kr = np.nonzero(indices >= 0)
     if len(qr):
-        db_row = order[sorted_of_full[indices[qr, kr]]]
-        out[qr, kr] = _rescore(q, db.rows, qr.astype(np.int64), db_row.astype(np.int64)).astype(np.float32)
+        out[qr, kr] = _rescore(q, db.rows, qr.astype(np.int64), db_rows[indices[qr, kr]]).astype(np.float32)
     return out
 
 

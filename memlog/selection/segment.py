@@ -92,12 +92,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from memlog.errors import ConfigError, SelectionError
+from memlog.scoring.scorer import view_steps
 from memlog.selection._checks import finite_number, fraction, positive_int, positive_number
 from memlog.selection.paper import codes_to_reasons, first_failing
 from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
 
 __all__ = ["SegmentConfig", "SegmentDefaults", "SEGMENT_DEFAULTS", "select_segments", "segment_ids", "cut_segments",
-           "shortlist_rows", "upper_bounds", "MS_DIGITS", "still_rows", "moving_index",
+           "shortlist_rows", "upper_bounds", "MS_DIGITS", "still_rows", "moving_index", "moving_index_of_views",
            "combined_score", "geometric_score", "percentile_ranks"]
 
 SegmentBy = Literal["auto", "distance", "time", "count", "view"]
@@ -420,6 +421,13 @@ def moving_index(index: ArrayLike, still: ArrayLike) -> NDArray[np.int64]:
         raise SelectionError(f"moving_index: {idx.shape[0]} frame indices but {st.shape[0]} still flags")
     gap = np.diff(idx, prepend=idx[:1])
     return np.asarray(idx - np.cumsum(np.where(st, gap, 0)), dtype=np.int64)
+
+
+def moving_index_of_views(index: ArrayLike, view: ArrayLike,
+                          still_distance: float = SEGMENT_DEFAULTS.still_distance) -> NDArray[np.int64]:
+    """:func:`moving_index` of one topic's rows from their view vectors (``view``: [N, v], rows in
+    drive order; the stops are :func:`still_rows` of their :func:`memlog.scoring.scorer.view_steps`)."""
+    return moving_index(index, still_rows(view_steps(view), still_distance))
 
 
 def _without_stops(coord: NDArray[np.float64], still: NDArray[np.bool_]) -> NDArray[np.float64]:

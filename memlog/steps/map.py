@@ -45,10 +45,10 @@ from memlog.outputs.descriptor_table import write_descriptors
 from memlog.outputs.maplog import MapLogWriter
 from memlog.progress import info, progress
 from memlog.scoring.config import ScoreConfig
-from memlog.scoring.scorer import view_steps, view_vector
+from memlog.scoring.scorer import view_vector
 from memlog.selection import ScoreTable, Selection
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
-from memlog.selection.segment import SegmentConfig, cut_segments, moving_index, still_rows
+from memlog.selection.segment import SegmentConfig, cut_segments, moving_index_of_views
 from memlog.selection.staged import MSState
 from memlog.steps.map_scoring import CheapFrame, SegmentJob, cheap_frames, choose_chunk, staged_record
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
@@ -269,7 +269,7 @@ def _moving(frames: list[Frame], tables: dict[str, ScoreTable], still_distance: 
     for t, table in tables.items():
         if table.view is None:
             return None
-        mi = moving_index(table.index, still_rows(view_steps(table.view), still_distance))
+        mi = moving_index_of_views(table.index, table.view, still_distance)
         lookup[t] = dict(zip(table.index.tolist(), mi.tolist()))
     for k, f in enumerate(frames):
         v = lookup.get(f.topic, {}).get(f.index)
