@@ -29,7 +29,8 @@ Maps (as many frames as ``--fractions`` of the drive's frames):
   candidate per segment: ``memlog map`` with default settings);
 * ``memlog, time segments``: the same with segments by time (memlog's default before it
   looked at the drive);
-* ``every k-th``: evenly spaced frame indices; ``random``: 20 seeds, mean +- std;
+* ``every k-th``: evenly spaced frame indices (and its noise: R@1 of the maps of k-4..k+4 evenly
+  spaced frames, whose spacing falls on other frames); ``random``: 20 seeds, mean +- std;
 * ``candidates`` table: K = 1, 2 and all (exact) candidates per segment (MS choosing between
   them for K >= 2).
 
@@ -204,6 +205,7 @@ def memlog_mask(t: Any, frac: float, shortlist: int | None = 1, **sel: Any) -> n
 
 def tab_maps(q: Drive, refs: dict[str, Drive], views: dict[str, np.ndarray], scores: Any, fracs: list[float]) -> None:
     from memlog.selection import random_masks, uniform_mask
+    from memlog.selection.segment import still_rows
 
     for mname, seq in matchers().items():
         rows = []
@@ -219,15 +221,17 @@ def tab_maps(q: Drive, refs: dict[str, Drive], views: dict[str, np.ndarray], sco
                 mt = memlog_mask(t, frac, segment_by="time")
                 rand = [r_at_1(q, r, mm, seq) for mm in random_masks(len(r), k, range(20))]
                 got = {"memlog": r_at_1(q, r, m, seq), "every k-th": r_at_1(q, r, uniform_mask(len(r), k), seq)}
+                # every k-th frame's own noise: its R@1 at map sizes k-4..k+4 (the phase of the spacing)
+                near_k = [r_at_1(q, r, uniform_mask(len(r), kk), seq)[0] for kk in range(k - 4, k + 5)]
                 rows.append([rname, len(r), f"{frac:g} ({k})", fmt(full), fmt(got["memlog"]),
                              fmt(r_at_1(q, r, m0, seq)), fmt(r_at_1(q, r, mt, seq)), fmt(got["every k-th"]),
-                             fmt_rand(rand), int(t.view_steps() is not None and (t.view_steps() < 0.001).sum())])
+                             f"{min(near_k):.3f}–{max(near_k):.3f}", fmt_rand(rand), 0 if t.view is None else int(still_rows(t.view).sum())])
                 loose.append([rname, f"{frac:g} ({k})", f"{full[2]:.3f}", f"{got['memlog'][2]:.3f}",
                               f"{got['every k-th'][2]:.3f}", f"{np.mean([x[2] for x in rand]):.3f}"])
         print(f"\n### Maps of drive variants, matched by {mname} (R@1 / AUC-PR, map-only; query: winter)\n")
         print(table(rows, ["reference", "frames", "fraction (frames)", "full map", "memlog",
                            "memlog, best bound (centre tolerance 0)", "memlog, time segments",
-                           "every k-th", "random (20)", "still frames"]))
+                           "every k-th", "every k-th, k±4 frames (R@1 min–max)", "random (20)", "still frames"]))
         if mname != "single":
             print(f"\nR@1 with a stop's frames as one place (truth: any frame of a stop holding a match of "
                   f"any frame of the query's stop), matched by {mname}:\n")
@@ -255,14 +259,17 @@ def tab_candidates(q: Drive, refs: dict[str, Drive], views: dict[str, np.ndarray
 
 
 def tab_stillness(refs: dict[str, Drive], views: dict[str, np.ndarray]) -> None:
+    from memlog.selection.segment import still_rows
+
     rows = []
     for rname, r in refs.items():
         v = views[rname].astype(np.float64)
         d = np.r_[np.inf, 1.0 - np.einsum("ij,ij->i", v[1:], v[:-1])]
         repeat = np.r_[False, r.variant.places[1:] == r.variant.places[:-1]]
+        still = still_rows(v)
         rows.append([rname, len(r), int(repeat.sum()), f"{np.percentile(d[repeat], 99) if repeat.any() else 0:.5f}",
-                     f"{np.percentile(d[~repeat][1:], 5):.4f}", int((d < 0.001).sum()), int(((d < 0.001) & ~repeat).sum())])
-    print("\n### Stops found from the images (view vectors, still below 0.001)\n")
+                     f"{np.percentile(d[~repeat][1:], 5):.4f}", int(still.sum()), int((still & ~repeat).sum())])
+    print("\n### Stops found from the images (view vectors within 0.001 of the stop's first frame)\n")
     print(table(rows, ["reference", "frames", "repeated frames (noise only)", "p99 distance, repeats",
                        "p5 distance, moving", "still frames", "of them moving (real stops of the source drive)"]))
 

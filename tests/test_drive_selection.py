@@ -77,12 +77,39 @@ def test_stops_are_found_from_the_images_not_from_time() -> None:
     """A slow crawl (1 px per frame) is not a stop; a standing camera with sensor noise is."""
     strip = _strip(600)
     x = np.concatenate([np.arange(0, 100, 1.0), np.full(30, 100.0), np.arange(101, 201, 1.0)])
-    steps = _table(_drive(strip, x)).view_steps()
-    assert steps is not None
-    still = steps < SEGMENT_DEFAULTS.still_distance
+    from memlog.selection.segment import still_rows
+
+    still = still_rows(_drive(strip, x), SEGMENT_DEFAULTS.still_distance)
     want = np.zeros(len(x), bool)
     want[np.flatnonzero(x == 100.0)[1:]] = True
-    assert still[1:].tolist() == want[1:].tolist()
+    assert still.tolist() == want.tolist()
+
+
+@pytest.mark.parametrize("px_per_frame", [0.05, 0.1, 0.2])
+def test_a_crawl_below_the_noise_per_frame_is_drive_not_a_stop(px_per_frame: float) -> None:
+    """A camera crawling a fraction of a pixel per frame: each step's view change is below the
+    still distance (what a frame-to-frame test would call a stop for the whole crawl), yet it
+    travels 20-40 px. Stops are measured from the stop's first frame, so the crawl's moving index
+    advances along it: at least once per 2 px travelled, evenly in the strip coordinate, while a
+    60-frame stop of sensor noise only, on the same drive, keeps one value."""
+    from memlog.scoring.scorer import view_steps
+    from memlog.selection.segment import moving_index, still_rows
+
+    strip = _strip(900)
+    crawl = 100.0 + np.arange(200) * px_per_frame
+    x = np.concatenate([np.arange(0, 100, 4.0), crawl, np.full(60, crawl[-1] + 4.0),
+                        crawl[-1] + 8.0 + np.arange(0, 100, 4.0)])
+    view = _drive(strip, x)
+    in_crawl = np.flatnonzero((x >= 100.0) & (x <= crawl[-1]))[1:]
+    assert (view_steps(view)[in_crawl] < SEGMENT_DEFAULTS.still_distance).mean() > 0.5  # steps below the noise
+    mi = moving_index(np.arange(len(x)), still_rows(view))
+    moves = np.flatnonzero(np.diff(mi[in_crawl]) > 0)
+    travelled = crawl[-1] - crawl[0]
+    assert len(moves) >= travelled / 2.0, (len(moves), travelled)
+    # evenly: no stretch of the crawl longer than 4 px without a step of the moving index
+    assert np.diff(np.r_[0, moves, len(in_crawl) - 1]).max() * px_per_frame <= 4.0
+    stop = np.flatnonzero(x == crawl[-1] + 4.0)
+    assert len(np.unique(mi[stop])) == 1
 
 
 def test_moving_index_counts_only_the_frames_that_moved() -> None:
@@ -90,21 +117,20 @@ def test_moving_index_counts_only_the_frames_that_moved() -> None:
     stride of 2 (frame indices 0, 2, 4, ...) with two stops; the expectation counts, in the strip
     coordinate, the frames whose position equals their predecessor's (each stands for 2 frames)."""
     from memlog.errors import SelectionError
-    from memlog.scoring.scorer import view_steps
     from memlog.selection.segment import moving_index, still_rows
 
     strip = _strip(900)
     x = np.concatenate([np.arange(0, 120, 4.0), np.full(15, 120.0), np.arange(124, 300, 4.0), np.full(9, 300.0),
                         np.arange(302, 400, 2.0)])
     index = np.arange(len(x)) * 2
-    still = still_rows(view_steps(_drive(strip, x)))
+    still = still_rows(_drive(strip, x))
     repeat = np.r_[False, x[1:] == x[:-1]]
     assert still.tolist() == repeat.tolist()
     want = index - 2 * np.cumsum(repeat)
     np.testing.assert_array_equal(moving_index(index, still), want)
     assert len(np.unique(want[x == 120.0])) == 1 and len(np.unique(want[x == 300.0])) == 1  # a stop: one value
     np.testing.assert_array_equal(moving_index([0, 2, 4, 6, 8], [False, False, True, True, False]), [0, 2, 2, 2, 4])
-    assert not still_rows(view_steps(_drive(strip, x)), still_distance=0.0).any()
+    assert not still_rows(_drive(strip, x), still_distance=0.0).any()
     with pytest.raises(SelectionError, match="5 frame indices but 4 still flags"):
         moving_index(np.arange(5), np.zeros(4, bool))
 

@@ -169,10 +169,12 @@ def test_map_whitens_by_default_and_localize_applies_the_same_transform(tmp_path
 
     rows = pacsv.read_csv(tmp_path / "m.csv").to_pylist()
     # the EuRoC slice is a MAV standing on the floor (median optical flow under a pixel over its
-    # 4.7 s): one stop, so with stops left out (the default) every frame takes the stop's first
-    # frame's match, which is that frame itself
-    assert qt.moving_index is not None and not qt.moving_index.any()
-    assert all(r["ref_id"] == 0 for r in rows)
+    # 4.7 s): nearly all one stop, so with stops left out (the default) a standing frame takes its
+    # stop's first frame's match, which is that frame itself
+    mi = qt.moving_index
+    assert mi is not None and (mi == 0).sum() >= 80
+    first_of_stop = {int(v): int(np.flatnonzero(mi == v)[0]) for v in np.unique(mi)}
+    assert [r["ref_id"] for r in rows] == [first_of_stop[int(v)] for v in mi]
     # with the stops kept each frame finds itself
     kept = localize(res.descriptors, log, tmp_path / "m_kept.csv",
                     LocalizeConfig(k=1, window=FrameWindow((EUROC_TOPIC,)), sequence=SequenceConfig(stops=False)),

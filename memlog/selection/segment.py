@@ -22,8 +22,9 @@ the robot moved, else the view change when the table has view vectors, else time
 timestamps span > 0, else frame count. Bins that hold no frame (the robot jumped, a time gap)
 are not segments.
 
-Stops. A step whose view change is below ``still_distance`` (a standing camera: sensor noise
-only) adds nothing to the coordinate, whichever it is (distance, view change or time): the
+Stops. A frame whose view lies within ``still_distance`` of its stop's first frame (a standing
+camera: sensor noise only; :func:`still_rows`, which measures from the stop's first frame so that
+a crawl, each step below the noise, is not a stop) adds nothing to the coordinate, whichever it is (distance, view change or time): the
 frames of a stop lie at one place of the drive and fall in one segment, so a stop never gets
 more than one map frame (``info["still_frames"]`` counts the frames that stood still). GNSS
 jitter of a standing robot, or the seconds it stood, do not make segments.
@@ -92,7 +93,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from memlog.errors import ConfigError, SelectionError
-from memlog.scoring.scorer import view_steps
+from memlog.scoring.scorer import blank_views, view_steps
 from memlog.selection._checks import finite_number, fraction, positive_int, positive_number
 from memlog.selection.paper import codes_to_reasons, first_failing
 from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
@@ -398,15 +399,39 @@ def _view_step(d: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.asarray(np.minimum(chord, VIEW_STEP_CAP), dtype=np.float64)
 
 
-def still_rows(steps: ArrayLike, still_distance: float = SEGMENT_DEFAULTS.still_distance) -> NDArray[np.bool_]:
-    """Rows that stood still: their view changed from the predecessor's by less than
-    ``still_distance`` (``steps``: :func:`memlog.scoring.scorer.view_steps`; unknown steps move;
-    the first row never stands still; ``still_distance <= 0``: none)."""
-    st = np.asarray(steps, dtype=np.float64)
-    if still_distance <= 0 or not len(st):
-        return np.zeros(len(st), dtype=bool)
-    still = np.asarray(np.nan_to_num(st, nan=np.inf) < still_distance, dtype=bool)
-    still[0] = False
+def still_rows(view: ArrayLike, still_distance: float = SEGMENT_DEFAULTS.still_distance) -> NDArray[np.bool_]:
+    """Rows that stood still: their view vector (``view``: [N, v], rows in drive order,
+    :func:`memlog.scoring.scorer.view_vector`) lies within ``still_distance`` (cosine) of the
+    stop's first frame, the last row that moved (the first row never stands still; two blank
+    views are the same view, a blank and a non-blank one differ by 1; a row with an unknown
+    vector moves; ``still_distance <= 0``: none). Measured from the stop's first frame, not the
+    predecessor, so a camera that crawls (a fraction of a pixel per frame, each step below sensor
+    noise) stands only until its view has drifted by ``still_distance``: a crawl is drive, a stop
+    is not."""
+    v = np.asarray(view, dtype=np.float64)
+    n = len(v)
+    still = np.zeros(n, dtype=bool)
+    if still_distance <= 0 or n < 2:
+        return still
+    steps = np.nan_to_num(view_steps(v), nan=np.inf)
+    blank = blank_views(v)
+    # a row whose step from its predecessor is 4x the threshold or more is out of reach of any
+    # anchor its predecessor stood within (chord lengths: sqrt(2 * 4t) - sqrt(2t) = sqrt(2t)), so
+    # only rows below that are compared with the anchor
+    near = steps < 4 * still_distance
+    anchor = 0
+    for i in range(1, n):
+        if near[i]:
+            if anchor == i - 1:
+                d = steps[i]
+            elif blank[i] or blank[anchor]:
+                d = 0.0 if blank[i] and blank[anchor] else 1.0
+            else:
+                d = 1.0 - float(np.dot(v[i], v[anchor]))  # NaN (unknown) compares False: moves
+            if d < still_distance:
+                still[i] = True
+                continue
+        anchor = i
     return still
 
 
@@ -426,8 +451,8 @@ def moving_index(index: ArrayLike, still: ArrayLike) -> NDArray[np.int64]:
 def moving_index_of_views(index: ArrayLike, view: ArrayLike,
                           still_distance: float = SEGMENT_DEFAULTS.still_distance) -> NDArray[np.int64]:
     """:func:`moving_index` of one topic's rows from their view vectors (``view``: [N, v], rows in
-    drive order; the stops are :func:`still_rows` of their :func:`memlog.scoring.scorer.view_steps`)."""
-    return moving_index(index, still_rows(view_steps(view), still_distance))
+    drive order; the stops are their :func:`still_rows`)."""
+    return moving_index(index, still_rows(view, still_distance))
 
 
 def _without_stops(coord: NDArray[np.float64], still: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -520,9 +545,8 @@ def cut_segments(table: ScoreTable, config: SegmentConfig
                           "table has neither")
     if by == "view" and not anchored and table.view is None:
         raise ConfigError("segment by='view' needs the frames' view vectors, but the score table has none")
-    steps = table.view_steps()
-    still = np.zeros(n, dtype=bool) if steps is None else still_rows(steps, config.still_distance)
-    if steps is not None:
+    still = np.zeros(n, dtype=bool) if table.view is None else still_rows(table.view, config.still_distance)
+    if table.view is not None:
         info["still_frames"] = int(still.sum())
     n_seg = (
         max(1, int(np.floor(config.keep_fraction * n + 0.5)))
@@ -564,6 +588,7 @@ def cut_segments(table: ScoreTable, config: SegmentConfig
         raw = _view_segments(table, config.view_distance)
         info["view_distance"] = config.view_distance
     else:  # view change
+        steps = table.view_steps()
         assert steps is not None
         chord = _view_step(np.nan_to_num(steps, nan=0.0))
         c = np.cumsum(np.where(still, 0.0, chord))
