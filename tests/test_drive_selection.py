@@ -112,6 +112,25 @@ def test_a_crawl_below_the_noise_per_frame_is_drive_not_a_stop(px_per_frame: flo
     assert len(np.unique(mi[stop])) == 1
 
 
+@pytest.mark.parametrize("px_per_frame", [0.05, 0.1, 0.2])
+def test_a_crawl_below_the_noise_covers_as_much_view_change_as_driving_that_stretch(px_per_frame: float) -> None:
+    """The view-change coordinate of a crawl whose every step is below the noise: each frame that
+    moves after standing counts its drift from the stop's first frame, so 20 px crawled add as much
+    view change as the same 20 px driven at 0.5 px per frame (every frame moving; within 25 %),
+    where counting only the last step gave about half."""
+    from memlog.selection.segment import SegmentConfig, cut_segments
+
+    strip = _strip(600)
+
+    def view_change(px: float) -> float:
+        x = 100.0 + np.arange(round(20 / px) + 1) * px
+        _seg, _coord, info = cut_segments(_table(_drive(strip, x)), SegmentConfig(by="view", keep_fraction=0.1))
+        return float(info["view_change"])
+
+    driven, crawled = view_change(0.5), view_change(px_per_frame)
+    assert abs(crawled / driven - 1.0) <= 0.25, (crawled, driven)
+
+
 def test_moving_index_counts_only_the_frames_that_moved() -> None:
     """The frame index minus the frames spent standing, from the images: a strip drive read with a
     stride of 2 (frame indices 0, 2, 4, ...) with two stops; the expectation counts, in the strip

@@ -10,7 +10,8 @@ The drive is cut into consecutive place segments, by one of
   (``ScoreTable.view``, a 32 x 16 zero-mean thumbnail of every frame) give each step from one
   frame to the next its chord length ``sqrt(2 * cosine distance)`` (about proportional to how far
   the camera moved for small steps), capped at :data:`VIEW_STEP_CAP` (a sudden change of the
-  whole view is not a long way), and the drive's total view change is split into
+  whole view is not a long way; a step that ends a standing run is measured from the run's first
+  frame, so a crawl below the noise counts its whole drift), and the drive's total view change is split into
   equal parts like a path length; without a size (``keep_fraction``) and with ``view_distance``, a new
   segment starts instead when the cosine distance to the segment's first frame's view vector (its
   descriptor in a table without view vectors) exceeds ``view_distance``.
@@ -455,6 +456,20 @@ def moving_index_of_views(index: ArrayLike, view: ArrayLike,
     return moving_index(index, still_rows(view, still_distance))
 
 
+def _moving_steps(view: ArrayLike, still: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """How much the view changed at each row that moved since the previous row that moved (cosine
+    distance, :func:`~memlog.scoring.scorer.view_steps` of the moving rows; 0 at still rows). A
+    row that ends a standing run is measured from the run's first frame, so a crawl whose every
+    step is below the noise counts the whole drift it made, as the same stretch driven faster does
+    (not only its last step)."""
+    v = np.asarray(view, dtype=np.float64)
+    out = np.zeros(len(v))
+    moving = np.flatnonzero(~np.asarray(still, dtype=bool))
+    if len(moving) > 1:
+        out[moving[1:]] = view_steps(v[moving])[1:]
+    return out
+
+
 def _without_stops(coord: NDArray[np.float64], still: NDArray[np.bool_]) -> NDArray[np.float64]:
     """``coord`` with the steps into still rows removed (a stop lies at one place)."""
     if not still.any():
@@ -588,10 +603,8 @@ def cut_segments(table: ScoreTable, config: SegmentConfig
         raw = _view_segments(table, config.view_distance)
         info["view_distance"] = config.view_distance
     else:  # view change
-        steps = table.view_steps()
-        assert steps is not None
-        chord = _view_step(np.nan_to_num(steps, nan=0.0))
-        c = np.cumsum(np.where(still, 0.0, chord))
+        assert table.view is not None
+        c = np.cumsum(_view_step(np.nan_to_num(_moving_steps(table.view, still), nan=0.0)))
         raw, width = _bin_along(c, None, n_seg)
         along = c
         info["view_change"] = float(c[-1])
