@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Maps of drives that stop, crawl and speed up: memlog's selection against every k-th frame.
 
-    python benchmarks/drive_maps.py [--scores SCORED.mcap] [--tables maps candidates coordinate]
+    python benchmarks/drive_maps.py [--scores SCORED.mcap] [--tables stillness maps candidates]
 
 Reference drives: variants of the shared Nordland summer drive (:mod:`benchmarks.drives`):
 ``base`` (the drive as recorded; it already stands still at stations, e.g. frames 128-175),

@@ -67,6 +67,7 @@ __all__ = [
     "CALIBRATION_IMAGES",
     "SETTINGS",
     "calibration_crops",
+    "sample_photo",
     "quantize_resmem",
     "prepare_resmem_int8",
     "resmem_int8_path",
@@ -157,7 +158,7 @@ INT8_FILE = f"resmem-{RESMEM_VERSION}-int8.onnx"
 # calibration data
 
 
-def _load_bgr(name: str) -> npt.NDArray[np.uint8]:
+def sample_photo(name: str) -> npt.NDArray[np.uint8]:
     """A scikit-image sample image as HxWx3 uint8 BGR (grey replicated)."""
     import cv2
     import skimage.data
@@ -187,7 +188,7 @@ def calibration_crops(n_images: int = DEFAULT_N_IMAGES) -> F32:
         raise ModelError(f"n_images must be in 1..{len(CALIBRATION_IMAGES)}, got {n_images}")
     parts = []
     for name in CALIBRATION_IMAGES[:n_images]:
-        frame = cv2.resize(_load_bgr(name), (_FRAME, _FRAME), interpolation=cv2.INTER_LINEAR)
+        frame = cv2.resize(sample_photo(name), (_FRAME, _FRAME), interpolation=cv2.INTER_LINEAR)
         parts.append(crops_from_frame(frame))
     return np.ascontiguousarray(np.concatenate(parts, axis=0), dtype=np.float32)
 
@@ -206,7 +207,7 @@ def validation_crops(n_calibration: int = DEFAULT_N_IMAGES, widths: tuple[int, .
         raise ModelError(f"n_calibration must be in 1..{len(CALIBRATION_IMAGES) - 1}, got {n_calibration}")
     parts = []
     for i, name in enumerate(CALIBRATION_IMAGES):
-        img = _load_bgr(name)
+        img = sample_photo(name)
         h, w = img.shape[:2]
         versions: list[npt.NDArray[Any]] = [] if i < n_calibration else [img]
         versions += [cv2.resize(img, (wd, max(1, round(h * wd / w))), interpolation=cv2.INTER_AREA) for wd in widths]
@@ -498,7 +499,7 @@ def _frames(n_calibration: int, held_out: bool, widths: tuple[int, ...] = (160, 
     for i, name in enumerate(CALIBRATION_IMAGES):
         if (i >= n_calibration) != held_out:
             continue
-        img = _load_bgr(name)
+        img = sample_photo(name)
         h, w = img.shape[:2]
         out.append(img)
         out += [cv2.resize(img, (wd, max(1, round(h * wd / w))), interpolation=cv2.INTER_AREA) for wd in widths]
