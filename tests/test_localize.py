@@ -338,9 +338,12 @@ def test_cli_causal_and_sparse_maps(nordland_maps: dict[str, Path], tmp_path: Pa
     t = pq.read_table(tmp_path / "c.parquet")
     meta = json.loads(t.schema.metadata[b"memlog.sequence"])
     assert meta["mode"] == "causal" and meta["length"] == 5 and meta["speeds"] == [0.5, 2.0]
-    assert meta["candidates"] == 5 and "5 frame(s) with fewer than 5 frames" in meta["fallback"]
+    assert meta["candidates"] == 5
     rows = t.to_pydict()
     by_query = {q: how for q, how in zip(rows["query_id"], rows["matched_by"])}
+    # the message counts every frame matched frame by frame, the standing ones that took such a match too
+    n_single = sum(how == "single frame" for how in by_query.values())
+    assert n_single > 5 and f"{n_single} frame(s) with fewer than 5 frames" in meta["fallback"], meta["fallback"]
     # the winter drive stands still for its first frames (pixel-identical here): a stop is one place, its
     # frames take its first frame's match, and a causal window needs 5 moving frames before the query frame
     from memlog.io import open_log

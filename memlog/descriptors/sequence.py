@@ -89,6 +89,7 @@ the votes are summed in an order fixed by the query: matching the queries in blo
 
 from __future__ import annotations
 
+import contextvars
 import logging
 import math
 from dataclasses import asdict, dataclass, field, replace
@@ -773,10 +774,16 @@ def match_sequences(
         stand = stand & ~first
         if stand.any() and cfg.enabled:
             keep = ~stand
-            sub = match_sequences(q[keep], qc[keep], reference, reference_coord, config, k=k, ref_mask=ref_mask,
-                                  runs=labels[keep], ref_unit=ref_unit, coordinate=coordinate, index=index,
-                                  nprobe=nprobe, rerank=rerank)
-            return _expand(sub, keep, q, db, n_ref)
+            token = _MOVING_ROWS.set(True)  # their fallback is said once, for every row (below)
+            try:
+                sub = match_sequences(q[keep], qc[keep], reference, reference_coord, config, k=k, ref_mask=ref_mask,
+                                      runs=labels[keep], ref_unit=ref_unit, coordinate=coordinate, index=index,
+                                      nprobe=nprobe, rerank=rerank)
+            finally:
+                _MOVING_ROWS.reset(token)
+            res = _expand(sub, keep, q, db, n_ref, cfg)
+            _say_fallback(res.info["fallback"])
+            return res
     kk = min(k, max(1, n_m))
     info: dict[str, Any] = {**cfg.to_dict(), "coordinate": coordinate, "k": k}
 
@@ -823,21 +830,11 @@ def match_sequences(
     # before it (decided from the past only: a live robot does not know how long a run will be)
     so_far = np.arange(n_q) - run_lo + 1
     use = ((so_far if cfg.causal else run_len) >= cfg.length + 1) if cfg.enabled else np.zeros(n_q, bool)
-    if not cfg.enabled:
-        info["fallback"] = "single frames asked for (sequence length 0)"
-    elif n_q and not use.any():
-        info["fallback"] = (f"no run of {cfg.length + 1} or more ordered frames (a single image, or frames whose "
-                            "stamps do not increase): matched frame by frame")
-    elif n_q and not use.all():
-        where = (f"with fewer than {cfg.length} frames of their run before them" if cfg.causal else
-                 f"in runs shorter than {cfg.length + 1} frames")
-        info["fallback"] = f"{int((~use).sum())} frame(s) {where}: matched frame by frame"
-    else:
-        info["fallback"] = None
+    info["fallback"] = _fallback(cfg, n_q, int((~use).sum()))
     info["sequence_queries"] = int(use.sum())
     info["single_queries"] = int(n_q - use.sum())
-    if info["fallback"]:
-        log.info("sequence matching: %s", info["fallback"])
+    if not _MOVING_ROWS.get():
+        _say_fallback(info["fallback"])
 
     if use.any() and n_m:
         qsteps = []
@@ -883,9 +880,34 @@ def match_sequences(
     return SequenceMatch(indices, scores, sims, margin, speed, window, seq, info)
 
 
-def _expand(sub: SequenceMatch, keep: BoolArray, q: F32, db: Database, n_ref: int) -> SequenceMatch:
+#: True while the rows that moved are matched on their own (the standing rows are added after)
+_MOVING_ROWS: contextvars.ContextVar[bool] = contextvars.ContextVar("memlog_sequence_moving_rows", default=False)
+
+
+def _say_fallback(fallback: str | None) -> None:
+    if fallback:
+        log.info("sequence matching: %s", fallback)
+
+
+def _fallback(cfg: SequenceConfig, n_q: int, n_single: int) -> str | None:
+    """What was matched frame by frame, and why (None: every one of the ``n_q`` rows by sequence)."""
+    if not cfg.enabled:
+        return "single frames asked for (sequence length 0)"
+    if n_q and n_single >= n_q:
+        return (f"no run of {cfg.length + 1} or more ordered frames (a single image, or frames whose "
+                "stamps do not increase): matched frame by frame")
+    if n_q and n_single:
+        where = (f"with fewer than {cfg.length} frames of their run before them" if cfg.causal else
+                 f"in runs shorter than {cfg.length + 1} frames")
+        return f"{n_single} frame(s) {where}: matched frame by frame"
+    return None
+
+
+def _expand(sub: SequenceMatch, keep: BoolArray, q: F32, db: Database, n_ref: int,
+            cfg: SequenceConfig) -> SequenceMatch:
     """The result of every query row from that of the rows matched (``keep``): a standing row
-    takes the result of the last matched row before it, with its own similarities."""
+    takes the result of the last matched row before it, with its own similarities (and counts
+    as matched the way that row was, in ``single_queries`` and the fallback message alike)."""
     n_q = len(keep)
     last = np.maximum.accumulate(np.where(keep, np.arange(n_q), 0))
     src = (np.cumsum(keep) - 1)[last]
@@ -893,7 +915,7 @@ def _expand(sub: SequenceMatch, keep: BoolArray, q: F32, db: Database, n_ref: in
     sims = _similarities(q, db, indices, _db_rows(db, n_ref))
     seq = sub.sequence[src]
     info = {**sub.info, "standing_rows": int((~keep).sum()), "sequence_queries": int(seq.sum()),
-            "single_queries": int(n_q - seq.sum())}
+            "single_queries": int(n_q - seq.sum()), "fallback": _fallback(cfg, n_q, int(n_q - seq.sum()))}
     return SequenceMatch(indices, sub.scores[src], sims, sub.margin[src], sub.speed[src], sub.window[src], seq, info)
 
 
