@@ -358,6 +358,40 @@ def test_cli_causal_and_sparse_maps(nordland_maps: dict[str, Path], tmp_path: Pa
     assert _recall_at_1(tmp_path / "c.parquet") > 0.5  # measured 0.60
 
 
+def test_localize_says_what_it_matched_frame_by_frame_once(nordland_maps: dict[str, Path], tmp_path: Path) -> None:
+    """The fallback is said once, by the step, with the count the outputs record (the sequence
+    matcher returns it and does not log it too: the CLI showed it twice)."""
+    import json
+    import logging
+
+    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.progress import LOGGER
+    from memlog.steps.localize import LocalizeConfig, localize
+    from tests.conftest import shared
+
+    class Keep(logging.Handler):
+        def __init__(self) -> None:
+            super().__init__(logging.INFO)
+            self.said: list[str] = []
+
+        def emit(self, record: logging.LogRecord) -> None:
+            self.said.append(record.getMessage())
+
+    keep, level = Keep(), LOGGER.level
+    LOGGER.addHandler(keep)
+    LOGGER.setLevel(logging.INFO)  # (a CLI test before may have left it at WARNING: -q)
+    try:
+        localize(nordland_maps["full"], shared("nordland_dev_winter.mcap"), tmp_path / "c.parquet",
+                 LocalizeConfig(sequence=SequenceConfig(causal=True, length=5)))
+    finally:
+        LOGGER.removeHandler(keep)
+        LOGGER.setLevel(level)
+    meta = json.loads(pq.read_table(tmp_path / "c.parquet").schema.metadata[b"memlog.sequence"])
+    said = [m for m in keep.said if "matched frame by frame" in m]
+    assert meta["single_queries"] > 5 and said == [meta["fallback"]], said
+    assert said[0].startswith(f"{meta['single_queries']} frame(s) with fewer than 5 frames")
+
+
 def test_cli_a_single_image_is_matched_as_a_frame(nordland_maps: dict[str, Path], tmp_path: Path) -> None:
     import json
 

@@ -89,8 +89,6 @@ the votes are summed in an order fixed by the query: matching the queries in blo
 
 from __future__ import annotations
 
-import contextvars
-import logging
 import math
 from dataclasses import asdict, dataclass, field, replace
 from typing import TYPE_CHECKING, Any
@@ -113,7 +111,6 @@ __all__ = [
     "STAT_SAMPLE",
 ]
 
-log = logging.getLogger(__name__)
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -774,16 +771,10 @@ def match_sequences(
         stand = stand & ~first
         if stand.any() and cfg.enabled:
             keep = ~stand
-            token = _MOVING_ROWS.set(True)  # their fallback is said once, for every row (below)
-            try:
-                sub = match_sequences(q[keep], qc[keep], reference, reference_coord, config, k=k, ref_mask=ref_mask,
-                                      runs=labels[keep], ref_unit=ref_unit, coordinate=coordinate, index=index,
-                                      nprobe=nprobe, rerank=rerank)
-            finally:
-                _MOVING_ROWS.reset(token)
-            res = _expand(sub, keep, q, db, n_ref, cfg)
-            _say_fallback(res.info["fallback"])
-            return res
+            sub = match_sequences(q[keep], qc[keep], reference, reference_coord, config, k=k, ref_mask=ref_mask,
+                                  runs=labels[keep], ref_unit=ref_unit, coordinate=coordinate, index=index,
+                                  nprobe=nprobe, rerank=rerank)
+            return _expand(sub, keep, q, db, n_ref, cfg)
     kk = min(k, max(1, n_m))
     info: dict[str, Any] = {**cfg.to_dict(), "coordinate": coordinate, "k": k}
 
@@ -833,8 +824,6 @@ def match_sequences(
     info["fallback"] = _fallback(cfg, n_q, int((~use).sum()))
     info["sequence_queries"] = int(use.sum())
     info["single_queries"] = int(n_q - use.sum())
-    if not _MOVING_ROWS.get():
-        _say_fallback(info["fallback"])
 
     if use.any() and n_m:
         qsteps = []
@@ -880,15 +869,6 @@ def match_sequences(
     return SequenceMatch(indices, scores, sims, margin, speed, window, seq, info)
 
 
-#: True while the rows that moved are matched on their own (the standing rows are added after)
-_MOVING_ROWS: contextvars.ContextVar[bool] = contextvars.ContextVar("memlog_sequence_moving_rows", default=False)
-
-
-def _say_fallback(fallback: str | None) -> None:
-    if fallback:
-        log.info("sequence matching: %s", fallback)
-
-
 def _fallback(cfg: SequenceConfig, n_q: int, n_single: int) -> str | None:
     """What was matched frame by frame, and why (None: every one of the ``n_q`` rows by sequence)."""
     if not cfg.enabled:
@@ -914,8 +894,9 @@ def _expand(sub: SequenceMatch, keep: BoolArray, q: F32, db: Database, n_ref: in
     indices = sub.indices[src]
     sims = _similarities(q, db, indices, _db_rows(db, n_ref))
     seq = sub.sequence[src]
-    info = {**sub.info, "standing_rows": int((~keep).sum()), "sequence_queries": int(seq.sum()),
-            "single_queries": int(n_q - seq.sum()), "fallback": _fallback(cfg, n_q, int(n_q - seq.sum()))}
+    n_single = int(n_q - seq.sum())
+    info = {**sub.info, "standing_rows": int((~keep).sum()), "sequence_queries": n_q - n_single,
+            "single_queries": n_single, "fallback": _fallback(cfg, n_q, n_single)}
     return SequenceMatch(indices, sub.scores[src], sims, sub.margin[src], sub.speed[src], sub.window[src], seq, info)
 
 

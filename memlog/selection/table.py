@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from memlog.errors import SelectionError
-from memlog.scoring.scorer import blank_views, view_steps
+from memlog.scoring.scorer import blank_views
 
 __all__ = ["ScoreTable", "Selection", "Gap", "CRITERIA", "REASONS", "DISTINCT"]
 
@@ -188,11 +188,6 @@ class ScoreTable:
         if self.view is None:
             return np.zeros(self.n, dtype=bool)
         return blank_views(self.view)
-
-    def view_steps(self) -> NDArray[np.float64] | None:
-        """How much the view changed from each row's predecessor
-        (:func:`memlog.scoring.scorer.view_steps`); None without view vectors."""
-        return None if self.view is None else view_steps(self.view)
 
 
 @dataclass(eq=False)
