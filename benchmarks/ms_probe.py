@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -31,7 +32,7 @@ import numpy.typing as npt
 
 def score_views(n_crops: int, seed: int = 0) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     from memlog.descriptors.dinov2 import DinoV2Describer
-    from memlog.models.quantize import CALIBRATION_IMAGES, sample_photo
+    from memlog.models.quantize import CALIBRATION_IMAGES, sample_photo, small_cameras
     from memlog.models.resmem import FRAME, crop_weights, crops_from_frame, resmem_onnx_path, run_crops
     from memlog.models.runtime import make_session
 
@@ -50,7 +51,7 @@ def score_views(n_crops: int, seed: int = 0) -> tuple[npt.NDArray[np.int64], npt
             ch, cw = int(h * s), int(w * s)
             y, x = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
             views.append(img[y:y + ch, x:x + cw])
-        views += [cv2.resize(img, (wd, max(1, round(h * wd / w))), interpolation=cv2.INTER_AREA) for wd in (160, 64)]
+        views += small_cameras(img)
         for v in views:
             frame = cv2.resize(v, (FRAME, FRAME), interpolation=cv2.INTER_LINEAR)
             m = run_crops(session, crops_from_frame(frame)).reshape(5, 5)
@@ -61,7 +62,9 @@ def score_views(n_crops: int, seed: int = 0) -> tuple[npt.NDArray[np.int64], npt
     return np.asarray(photo), np.asarray(ms), np.asarray(desc, dtype=np.float64)
 
 
-def ridge(x: npt.NDArray[np.float64], y: npt.NDArray[np.float64], alpha: float):  # type: ignore[no-untyped-def]
+def ridge(x: npt.NDArray[np.float64], y: npt.NDArray[np.float64],
+          alpha: float) -> Callable[[npt.NDArray[np.float64]], npt.NDArray[np.float64]]:
+    """The ridge regression of ``y`` on ``x`` (centred) as a predictor."""
     mu, ym = x.mean(axis=0), y.mean()
     xc = x - mu
     w = np.linalg.solve(xc.T @ xc + alpha * np.eye(x.shape[1]), xc.T @ (y - ym))

@@ -68,6 +68,7 @@ __all__ = [
     "SETTINGS",
     "calibration_crops",
     "sample_photo",
+    "small_cameras",
     "quantize_resmem",
     "prepare_resmem_int8",
     "resmem_int8_path",
@@ -176,6 +177,15 @@ def sample_photo(name: str) -> npt.NDArray[np.uint8]:
     raise ModelError(f"scikit-image sample image {name!r} has unexpected shape {img.shape}")
 
 
+def small_cameras(img: npt.NDArray[Any], widths: tuple[int, ...] = (160, 64)) -> list[npt.NDArray[Any]]:
+    """``img`` as low-resolution cameras see it: shrunk to each width of ``widths`` pixels (aspect
+    kept) with ``INTER_AREA``, like the 376 x 240 EuRoC or 64 x 32 Nordland frames."""
+    import cv2
+
+    h, w = img.shape[:2]
+    return [cv2.resize(img, (wd, max(1, round(h * wd / w))), interpolation=cv2.INTER_AREA) for wd in widths]
+
+
 def calibration_crops(n_images: int = DEFAULT_N_IMAGES) -> F32:
     """Calibration crops [25 * n_images, 3, 227, 227] float32 (RGB 0..1), deterministic.
 
@@ -208,9 +218,7 @@ def validation_crops(n_calibration: int = DEFAULT_N_IMAGES, widths: tuple[int, .
     parts = []
     for i, name in enumerate(CALIBRATION_IMAGES):
         img = sample_photo(name)
-        h, w = img.shape[:2]
-        versions: list[npt.NDArray[Any]] = [] if i < n_calibration else [img]
-        versions += [cv2.resize(img, (wd, max(1, round(h * wd / w))), interpolation=cv2.INTER_AREA) for wd in widths]
+        versions: list[npt.NDArray[Any]] = ([] if i < n_calibration else [img]) + small_cameras(img, widths)
         for src in versions:
             frame = cv2.resize(src, (_FRAME, _FRAME), interpolation=cv2.INTER_LINEAR)
             parts.append(crops_from_frame(frame))
@@ -493,16 +501,13 @@ def frame_crop(bgr: npt.NDArray[Any]) -> F32:
 def _frames(n_calibration: int, held_out: bool, widths: tuple[int, ...] = (160, 64)) -> list[npt.NDArray[Any]]:
     """The photos used for the fit (the calibration photos at full and low resolution) or held
     out from it (the others), as camera frames."""
-    import cv2
-
     out: list[npt.NDArray[Any]] = []
     for i, name in enumerate(CALIBRATION_IMAGES):
         if (i >= n_calibration) != held_out:
             continue
         img = sample_photo(name)
-        h, w = img.shape[:2]
         out.append(img)
-        out += [cv2.resize(img, (wd, max(1, round(h * wd / w))), interpolation=cv2.INTER_AREA) for wd in widths]
+        out += small_cameras(img, widths)
     return out
 
 
