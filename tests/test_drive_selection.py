@@ -162,6 +162,7 @@ def test_the_map_and_a_described_query_carry_the_moving_index(tmp_path, monkeypa
     from memlog.descriptors.registry import make_describer
     from memlog.outputs.descriptor_table import read_descriptors
     from memlog.selection.config import SelectionConfig
+    from memlog.selection.segment import SEGMENT_DEFAULTS, stop_rule
     from memlog.steps.map import MapConfig, make_map
     from tests.conftest import repeating_log
     from tests.stand_in import use_stand_in
@@ -179,6 +180,15 @@ def test_the_map_and_a_described_query_carry_the_moving_index(tmp_path, monkeypa
     assert m.moving_index is not None and len(m) >= 4
     assert m.moving_index.tolist() == [want[i] for i in m.frame_index]
     assert sum(1 for i in m.frame_index if 1 <= i <= 3) <= 1  # the stop holds one map frame
+    # both record how their stops were found; with still_distance 0 the map has none, and says so
+    assert t.extra["stops"] == m.extra["stops"] == stop_rule(SEGMENT_DEFAULTS.still_distance)
+    res0 = make_map(log, tmp_path / "m0.mcap", MapConfig(select=SelectionConfig(keep_fraction=0.75, still_distance=0.0),
+                                                          descriptor="thumbnail"))
+    assert res0.descriptors is not None
+    m0 = read_descriptors(res0.descriptors)
+    assert m0.extra["stops"] == stop_rule(0.0) and m0.moving_index is not None
+    # (frames after the stop are kept: with the default rule their moving index would be 2 less)
+    assert m0.moving_index.tolist() == m0.frame_index.tolist() and max(m0.frame_index) > 3
 
 
 def test_a_crawl_gets_fewer_map_frames_than_every_kth_frame_gives_it() -> None:

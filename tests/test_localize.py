@@ -3,7 +3,10 @@ batched = one by one, confidence, timing, output."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import logging
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -358,16 +361,10 @@ def test_cli_causal_and_sparse_maps(nordland_maps: dict[str, Path], tmp_path: Pa
     assert _recall_at_1(tmp_path / "c.parquet") > 0.5  # measured 0.60
 
 
-def test_localize_says_what_it_matched_frame_by_frame_once(nordland_maps: dict[str, Path], tmp_path: Path) -> None:
-    """The fallback is said once, by the step, with the count the outputs record (the sequence
-    matcher returns it and does not log it too: the CLI showed it twice)."""
-    import json
-    import logging
-
-    from memlog.descriptors.sequence import SequenceConfig
+@contextlib.contextmanager
+def _said() -> Iterator[list[str]]:
+    """What memlog's logger says (at INFO and above) inside the block."""
     from memlog.progress import LOGGER
-    from memlog.steps.localize import LocalizeConfig, localize
-    from tests.conftest import shared
 
     class Keep(logging.Handler):
         def __init__(self) -> None:
@@ -381,15 +378,85 @@ def test_localize_says_what_it_matched_frame_by_frame_once(nordland_maps: dict[s
     LOGGER.addHandler(keep)
     LOGGER.setLevel(logging.INFO)  # (a CLI test before may have left it at WARNING: -q)
     try:
-        localize(nordland_maps["full"], shared("nordland_dev_winter.mcap"), tmp_path / "c.parquet",
-                 LocalizeConfig(sequence=SequenceConfig(causal=True, length=5)))
+        yield keep.said
     finally:
         LOGGER.removeHandler(keep)
         LOGGER.setLevel(level)
+
+
+def test_localize_says_what_it_matched_frame_by_frame_once(nordland_maps: dict[str, Path], tmp_path: Path) -> None:
+    """The fallback is said once, by the step, with the count the outputs record (the sequence
+    matcher returns it and does not log it too: the CLI showed it twice)."""
+    import json
+
+    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.steps.localize import LocalizeConfig, localize
+    from tests.conftest import shared
+
+    with _said() as kept:
+        localize(nordland_maps["full"], shared("nordland_dev_winter.mcap"), tmp_path / "c.parquet",
+                 LocalizeConfig(sequence=SequenceConfig(causal=True, length=5)))
     meta = json.loads(pq.read_table(tmp_path / "c.parquet").schema.metadata[b"memlog.sequence"])
-    said = [m for m in keep.said if "matched frame by frame" in m]
+    said = [m for m in kept if "matched frame by frame" in m]
     assert meta["single_queries"] > 5 and said == [meta["fallback"]], said
     assert said[0].startswith(f"{meta['single_queries']} frame(s) with fewer than 5 frames")
+
+
+def test_the_query_s_stops_are_found_as_the_map_s(nordland_maps: dict[str, Path], tmp_path: Path) -> None:
+    """localize finds the query's stops with the still_distance the map recorded (both drives run
+    along moving indices found alike), re-describes a cached query whose stops were found
+    otherwise, and warns about a map that does not say how its stops were found."""
+    import json
+
+    from memlog.descriptors.extract import describe_log
+    from memlog.descriptors.registry import make_describer
+    from memlog.descriptors.table import DescriptorTable
+    from memlog.descriptors.whitening import WhitenedDescriber
+    from memlog.outputs.descriptor_table import read_descriptors, write_descriptors
+    from memlog.selection.segment import SEGMENT_DEFAULTS, stop_rule
+    from memlog.steps.localize import localize
+    from tests.conftest import shared
+
+    winter = shared("nordland_dev_winter.mcap")
+    full = read_descriptors(nordland_maps["full"])
+    assert full.extra["stops"] == stop_rule(SEGMENT_DEFAULTS.still_distance)
+    # the same map with stops found with still_distance 0 (none: the moving index is the frame index)
+    t0, _ = describe_log(shared("nordland_dev_summer.mcap"), make_describer("thumbnail"), still_distance=0.0)
+    assert t0.extra["stops"] == stop_rule(0.0) and np.array_equal(t0.moving_index, t0.frame_index)
+
+    def variant(name: str, extra: dict[str, object]) -> Path:
+        assert full.whitening is not None
+        return write_descriptors(tmp_path / name, DescriptorTable(
+            full.topic, full.frame_index, full.log_time_ns, full.stamp_ns, full.descriptors,
+            WhitenedDescriber(make_describer("thumbnail"), full.whitening).meta(), extra=extra,
+            whitening=full.whitening, moving_index=t0.moving_index if extra.get("stops") else full.moving_index))
+
+    no_stops = variant("no_stops.parquet", t0.extra)
+    cache = tmp_path / "query.parquet"
+    first = localize(no_stops, winter, tmp_path / "a.parquet", query_descriptors=cache)
+    q = read_descriptors(cache)
+    assert not first.query_descriptors_reused and q.extra["stops"] == stop_rule(0.0)
+    assert np.array_equal(q.moving_index, q.frame_index)  # the winter drive's stations are not stops here
+    assert first.sequence["still_distance"] == 0.0 and first.sequence["standing_rows"] == 0
+    # against the map with the default rule the cached query is not reused: its stops are found again
+    second = localize(nordland_maps["full"], winter, tmp_path / "b.parquet", query_descriptors=cache)
+    q = read_descriptors(cache)
+    assert not second.query_descriptors_reused and q.extra["stops"] == full.extra["stops"]
+    assert second.sequence["standing_rows"] > 100 and (q.moving_index < q.frame_index).any()
+    assert localize(nordland_maps["full"], winter, tmp_path / "c.parquet",
+                    query_descriptors=cache).query_descriptors_reused
+
+    # a map written before the rule was recorded: matched with the default rule, and said so
+    old = variant("old.parquet", {k: v for k, v in full.extra.items() if k != "stops"})
+    with _said() as kept:
+        res = localize(old, winter, tmp_path / "d.parquet", query_descriptors=cache)
+    said = [m for m in kept if "found by an older memlog" in m]
+    assert len(said) == 1 and str(old) in said[0] and "--keep-stops" in said[0], kept
+    assert res.query_descriptors_reused and res.sequence["still_distance"] == SEGMENT_DEFAULTS.still_distance
+    b, d = (pq.read_table(tmp_path / n).to_pydict() for n in ("b.parquet", "d.parquet"))
+    assert b["ref_id"] == d["ref_id"]  # the same moving indices as the map with the default rule
+    assert json.loads(pq.read_table(tmp_path / "d.parquet").schema.metadata[b"memlog.sequence"])[
+        "still_distance"] == SEGMENT_DEFAULTS.still_distance
 
 
 def test_cli_a_single_image_is_matched_as_a_frame(nordland_maps: dict[str, Path], tmp_path: Path) -> None:

@@ -27,7 +27,7 @@ from memlog.io.positions import PositionTrack, read_track
 from memlog.io.records import ReadReport
 from memlog.progress import progress
 from memlog.scoring.scorer import view_vector
-from memlog.selection.segment import moving_index_of_views
+from memlog.selection.segment import SEGMENT_DEFAULTS, moving_index_of_views, stop_rule
 
 __all__ = ["describe_frames", "build_table", "describe_log", "moving_indices", "ReferenceDescribing"]
 
@@ -69,17 +69,19 @@ def describe_frames(
     return kept, desc
 
 
-def moving_indices(frames: Sequence[Frame], views: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
+def moving_indices(frames: Sequence[Frame], views: np.ndarray | Sequence[np.ndarray],
+                   still_distance: float = SEGMENT_DEFAULTS.still_distance) -> np.ndarray:
     """Each frame's index with its topic's stops left out
     (:func:`memlog.selection.segment.moving_index`), from the frames' view vectors (``views``,
-    one per frame; each topic's frames in drive order, consecutive as far as they were read)."""
+    one per frame; each topic's frames in drive order, consecutive as far as they were read) and
+    ``still_distance`` (:func:`~memlog.selection.segment.still_rows`)."""
     v = np.asarray(views, dtype=np.float64).reshape(len(frames), -1)
     index = np.array([f.index for f in frames], dtype=np.int64)
     topics = np.array([f.topic for f in frames], dtype=object)
     out = index.copy()
     for t in dict.fromkeys(topics.tolist()):
         rows = np.flatnonzero(topics == t)
-        out[rows] = moving_index_of_views(index[rows], v[rows])
+        out[rows] = moving_index_of_views(index[rows], v[rows], still_distance)
     return out
 
 
@@ -93,10 +95,13 @@ def build_table(
     extra: dict[str, Any] | None = None,
     whitening: Whitening | None = None,
     moving: np.ndarray | None = None,
+    still_distance: float = SEGMENT_DEFAULTS.still_distance,
 ) -> DescriptorTable:
     """A DescriptorTable of described frames, with their scores and interpolated positions.
     With ``whitening``, ``descriptors`` are already whitened by it and the table carries it;
-    ``moving``: the frames' :func:`moving_indices` (the table's ``moving_index``)."""
+    ``moving``: the frames' :func:`moving_indices` (the table's ``moving_index``), its stops
+    found with ``still_distance`` (recorded as ``extra["stops"]``,
+    :func:`~memlog.selection.segment.stop_rule`)."""
     def score(name: str) -> np.ndarray:
         if scores is None:
             return np.full(len(frames), np.nan)
@@ -119,6 +124,8 @@ def build_table(
     ex = dict(extra or {})
     if track is not None:
         ex["position_topic"] = track.topic
+    if moving is not None:
+        ex["stops"] = stop_rule(still_distance)
     return DescriptorTable(
         topic=[f.topic for f in frames],
         frame_index=np.array([f.index for f in frames], dtype=np.int64),
@@ -140,10 +147,12 @@ def describe_log(
     window: FrameWindow | None = None,
     *,
     scores: Mapping[str, Mapping[int, Mapping[str, Any]]] | None = None,
+    still_distance: float = SEGMENT_DEFAULTS.still_distance,
 ) -> tuple[DescriptorTable, ReadReport]:
     """Descriptors of the frames of ``window`` (default: the first camera topic, every frame),
-    with positions when the log has them, and the read report (damage found). The table's
-    ``extra`` records the log, its identity and the window."""
+    with positions when the log has them, and the read report (damage found); the moving index
+    with stops found with ``still_distance``. The table's ``extra`` records the log, its
+    identity, the window and how stops were found."""
     window = window or FrameWindow()
     with open_log(log) as reader:
         cams = reader.check_camera_topics(window.topics)
@@ -157,7 +166,8 @@ def describe_log(
         kept, desc = describe_frames(frames, describer, reader, views=views)
         extra = {"log": str(reader.path), "log_identity": log_identity(log), "window": w.to_dict()}
         return build_table(kept, desc, describer, scores=scores, track=track, extra=extra,
-                           moving=moving_indices(kept, views)), reader.report
+                           moving=moving_indices(kept, views, still_distance),
+                           still_distance=still_distance), reader.report
 
 
 class ReferenceDescribing:

@@ -6,7 +6,10 @@ One row per frame: ``topic`` (string), ``frame_index``, ``log_time_ns``, ``stamp
 when written with ``dtype="float16"``) and optional positions, either geographic
 ``lat``/``lon``/``alt`` or local ``x``/``y``/``z`` (float64, nullable), and optionally
 ``moving_index`` (int64: the frame index with the drive's stops left out, what sequence matching
-runs along; absent in files written before it). In numpy a null float is NaN (both directions).
+runs along; absent in files written before it; ``memlog.extra``'s ``stops`` says how its stops
+were found, :func:`memlog.selection.segment.stop_rule`, absent in files written before it was
+recorded). In numpy
+a null float is NaN (both directions).
 
 Storage: the descriptor column is plain-encoded (no dictionary) and zstd-compressed, in row
 groups of about 16 MiB of descriptors, so a reader can stream it; the topic column is
@@ -49,6 +52,7 @@ from memlog.io.atomic import atomic_output
 from memlog.io.base import FrameWindow
 from memlog.io.identity import same_identity
 from memlog.progress import info
+from memlog.selection.segment import SEGMENT_DEFAULTS, stop_rule
 
 __all__ = ["write_descriptors", "read_descriptors", "read_cached", "stored_dtype", "DTYPES"]
 
@@ -297,10 +301,13 @@ def _strings(col: pa.ChunkedArray, path: Path) -> list[str]:
 
 
 def read_cached(path: str | os.PathLike[str], log: str | os.PathLike[str], meta: DescriptorMeta,
-                window: FrameWindow) -> DescriptorTable | None:
+                window: FrameWindow,
+                still_distance: float = SEGMENT_DEFAULTS.still_distance) -> DescriptorTable | None:
     """The descriptor table cached at ``path`` when ``describe_log`` made it from ``log`` (same
     identity: path, size, modification time), with ``window``, a describer compatible with
-    ``meta`` and the frames' ``moving_index``; else None, saying why (``window.topics`` None: the topics the table was made from)."""
+    ``meta`` and the frames' ``moving_index``, its stops found as they are now with
+    ``still_distance`` (``extra["stops"]``); else None, saying why (``window.topics`` None: the
+    topics the table was made from)."""
     p = Path(path)
     if not p.is_file():
         return None
@@ -319,6 +326,13 @@ def read_cached(path: str | os.PathLike[str], log: str | os.PathLike[str], meta:
         return None
     if t.moving_index is None:
         info(f"not reusing {p}: it has no moving_index (written before stops were recorded)")
+        return None
+    found, want = t.extra.get("stops"), stop_rule(still_distance)
+    if found != want:
+        how = (f"with still_distance {found.get('still_distance')}, not {still_distance:g}"
+               if isinstance(found, dict) and found.get("rule") == want["rule"]
+               else "by an older memlog (frame to frame)")
+        info(f"not reusing {p}: its stops were found {how}")
         return None
     info(f"reusing descriptors {p} (same log, window and descriptor)")
     return t

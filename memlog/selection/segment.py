@@ -101,7 +101,7 @@ from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
 
 __all__ = ["SegmentConfig", "SegmentDefaults", "SEGMENT_DEFAULTS", "select_segments", "segment_ids", "cut_segments",
            "shortlist_rows", "upper_bounds", "MS_DIGITS", "still_rows", "moving_index", "moving_index_of_views",
-           "combined_score", "geometric_score", "percentile_ranks"]
+           "STOP_RULE", "stop_rule", "combined_score", "geometric_score", "percentile_ranks"]
 
 SegmentBy = Literal["auto", "distance", "time", "count", "view"]
 Combine = Literal["rank", "geometric"]
@@ -454,6 +454,19 @@ def moving_index_of_views(index: ArrayLike, view: ArrayLike,
     """:func:`moving_index` of one topic's rows from their view vectors (``view``: [N, v], rows in
     drive order; the stops are their :func:`still_rows`)."""
     return moving_index(index, still_rows(view, still_distance))
+
+
+#: How :func:`still_rows` finds a stop, as a descriptor table records it beside its moving index
+#: (``extra["stops"]``, :func:`stop_rule`). Tables written before it was recorded found stops frame
+#: to frame (a slow crawl was one stop).
+STOP_RULE = "within still_distance of the stop's first frame"
+
+
+def stop_rule(still_distance: float = SEGMENT_DEFAULTS.still_distance) -> dict[str, Any]:
+    """The record of how a drive's stops were found (:func:`still_rows` with ``still_distance``),
+    kept with its moving index: two drives are matched along their moving indices only when
+    their stops were found alike."""
+    return {"rule": STOP_RULE, "still_distance": float(still_distance)}
 
 
 def _moving_steps(view: ArrayLike, still: NDArray[np.bool_]) -> NDArray[np.float64]:

@@ -290,12 +290,13 @@ def _reuse_scores(path: Path, reference: str, cfg: ScoreConfig, topic: str | Non
 
 
 def _described(log: str, path: Path, describer: Describer, window: FrameWindow, reports: list[ReadReport],
-               scores: dict[str, dict[int, dict[str, Any]]] | None = None) -> DescriptorTable:
-    """Descriptors of ``log`` (cached at ``path`` when made from the same log, window and describer)."""
-    cached = read_cached(path, log, describer.meta(), window)
+               still_distance: float, scores: dict[str, dict[int, dict[str, Any]]] | None = None) -> DescriptorTable:
+    """Descriptors of ``log``, stops found with ``still_distance`` (cached at ``path`` when made
+    from the same log, window, describer and stop rule)."""
+    cached = read_cached(path, log, describer.meta(), window, still_distance)
     if cached is not None:
         return cached
-    t, report = describe_log(log, describer, window, scores=scores)
+    t, report = describe_log(log, describer, window, scores=scores, still_distance=still_distance)
     reports.append(report)
     write_descriptors(path, t)
     return t
@@ -391,9 +392,11 @@ def evaluate(
             continue
         describer = describers[kind]
         # 2. descriptors of every reference and query frame (unwhitened; cached per kind)
-        ref_t = _described(reference, out / f"reference.{kind}.parquet", describer, ref_window, reports,
+        # both drives' stops found as `memlog map` finds the map's (its selection's still_distance)
+        still = cfg.select.still_distance
+        ref_t = _described(reference, out / f"reference.{kind}.parquet", describer, ref_window, reports, still,
                            score_by_frame)
-        q_t = _described(query, out / f"query.{kind}.parquet", describer, q_window, reports)
+        q_t = _described(query, out / f"query.{kind}.parquet", describer, q_window, reports, still)
         if not len(ref_t) or not len(q_t):
             raise EvaluationError("no frame of the reference or the query was described (window too small?)")
         n_ref_rows = int(ref_t.frame_index.max()) + 1

@@ -50,7 +50,8 @@ from memlog.io.base import FrameWindow
 from memlog.io.records import ReadReport
 from memlog.outputs.descriptor_table import read_cached, read_descriptors, stored_dtype, write_descriptors
 from memlog.outputs.matches import write_match_log, write_matches
-from memlog.progress import info
+from memlog.progress import info, warning
+from memlog.selection.segment import SEGMENT_DEFAULTS, STOP_RULE
 
 __all__ = ["localize", "LocalizeConfig", "LocalizeResult", "describer_for"]
 
@@ -141,11 +142,12 @@ def localize(
     if cfg.sequence.enabled and cfg.sequence.coordinate == "positions" and not has_positions(ref):
         raise ConfigError(f"--coordinate positions: the map {map_descriptors} has no position for every frame "
                           "(use --coordinate frames or time)")
-    qt = read_cached(query_descriptors, query_log, ref.meta, cfg.window) if query_descriptors else None
+    still = map_still_distance(ref, map_descriptors, cfg.sequence)
+    qt = read_cached(query_descriptors, query_log, ref.meta, cfg.window, still) if query_descriptors else None
     reused = qt is not None
     reports: list[ReadReport] = []
     if qt is None:
-        qt, report = describe_log(query_log, describer_for(ref), cfg.window)
+        qt, report = describe_log(query_log, describer_for(ref), cfg.window, still_distance=still)
         reports.append(report)
         if query_descriptors is not None:
             write_descriptors(query_descriptors, qt)
@@ -171,7 +173,7 @@ def localize(
     conf = confidence(sims)
     how = np.where(res.sequence, "causal sequence" if cfg.sequence.causal else "sequence", "single frame")
     seq_scores = np.where(res.sequence[:, None] & (idx >= 0), res.scores, np.nan)
-    sequence = _sequence_record(res.info, cfg.sequence)
+    sequence = {**_sequence_record(res.info, cfg.sequence), "still_distance": still}
     out = write_matches(
         output, idx, sims, query_ids=qt.frame_index, ref_ids=ref.frame_index,
         query_columns={"query_topic": np.array(qt.topic), "query_log_time_ns": qt.log_time_ns,
@@ -198,6 +200,21 @@ def localize(
                                     speed=res.speed)
     return LocalizeResult(out, len(qt), len(ref), cfg.k, timing_map, annotated, reused, reports, search,
                           search_timing, sequence)
+
+
+def map_still_distance(ref: DescriptorTable, path: str | os.PathLike[str], cfg: SequenceConfig) -> float:
+    """The ``still_distance`` the map's stops were found with (its ``extra["stops"]``), so the
+    query's stops are found alike; the default for a map that does not say (warning, when its
+    stops are left out of the match: a map written before the rule was recorded found them frame
+    to frame)."""
+    rule = ref.extra.get("stops")
+    if isinstance(rule, dict) and rule.get("rule") == STOP_RULE:
+        return float(rule["still_distance"])
+    if ref.moving_index is not None and cfg.enabled and cfg.stops:
+        warning(f"{path}: the map's stops were found by an older memlog (frame to frame: a slow crawl was one "
+                "stop), the query's are found from each stop's first frame; re-run `memlog map` to find both "
+                "alike, or match with --keep-stops")
+    return SEGMENT_DEFAULTS.still_distance
 
 
 def _sequence_record(found: dict[str, Any], cfg: SequenceConfig) -> dict[str, Any]:

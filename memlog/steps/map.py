@@ -546,8 +546,10 @@ def make_map(
             frames, desc, white = described
             extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
                      "keep_fraction": sel_cfg.keep_fraction, "descriptor_choice": choice.to_dict()}
+            moving = _moving(frames, tables, sel_cfg.still_distance)
             write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra,
-                                                 whitening=white, moving=_moving(frames, tables, sel_cfg.still_distance)),
+                                                 whitening=white, moving=moving,
+                                                 still_distance=sel_cfg.still_distance),
                               dtype=cfg.descriptor_dtype)
             result.descriptors = dpath
     result.seconds = time.perf_counter() - t0
