@@ -475,7 +475,8 @@ def add_sequence_flags(p: Any) -> None:
     g.add_argument("--keep-stops", action="store_true",
                    help="match along the frame index as recorded, every frame on its own (default: where the camera "
                         "stood still, seen from the images, the stop counts as one place and its frames take the "
-                        "match of its first frame; frames coordinate only)")
+                        "match of its first frame; the query's stops are found as the map recorded its own; "
+                        "frames coordinate only)")
 
 
 _SEQUENCE_FLAGS = {"causal": "--causal", "speeds": "--speeds", "sequence_k": "--sequence-k",
