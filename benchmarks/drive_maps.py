@@ -165,7 +165,12 @@ def r_at_1(q: Drive, r: Drive, mask: np.ndarray | None, seq: Any) -> tuple[float
     """(R@1, AUC-PR, R@1 with a stop's frames as one place) of the map ``mask``, matched as
     ``memlog localize`` matches (with ``seq.stops``: along the moving index, a standing query
     frame taking its stop's match)."""
-    correct, auc, loose = outcomes(q, r, mask, seq)
+    return summary(outcomes(q, r, mask, seq))
+
+
+def summary(o: tuple[np.ndarray, float, np.ndarray]) -> tuple[float, float, float]:
+    """(R@1, AUC-PR, R@1 with a stop's frames as one place) of :func:`outcomes`."""
+    correct, auc, loose = o
     return float(correct.mean()), auc, float(loose.mean())
 
 
@@ -242,8 +247,7 @@ def tab_maps(q: Drive, refs: dict[str, Drive], views: dict[str, np.ndarray], sco
                 mt = memlog_mask(t, frac, segment_by="time")
                 rand = [r_at_1(q, r, mm, seq) for mm in random_masks(len(r), k, range(20))]
                 mine, kth = outcomes(q, r, m, seq), outcomes(q, r, uniform_mask(len(r), k), seq)
-                got = {name: (float(o[0].mean()), o[1], float(o[2].mean())) for name, o in
-                       (("memlog", mine), ("every k-th", kth))}
+                got = {"memlog": summary(mine), "every k-th": summary(kth)}
                 lo, hi = paired_interval(mine[0], kth[0])
                 # every k-th frame's own noise: its R@1 at map sizes k-4..k+4 (the phase of the spacing)
                 near_k = [r_at_1(q, r, uniform_mask(len(r), kk), seq)[0] for kk in range(k - 4, k + 5)]

@@ -8,8 +8,7 @@ when written with ``dtype="float16"``) and optional positions, either geographic
 ``moving_index`` (int64: the frame index with the drive's stops left out, what sequence matching
 runs along; absent in files written before it; ``memlog.extra``'s ``stops`` says how its stops
 were found, :func:`memlog.selection.segment.stop_rule`, absent in files written before it was
-recorded). In numpy
-a null float is NaN (both directions).
+recorded). In numpy a null float is NaN (both directions).
 
 Storage: the descriptor column is plain-encoded (no dictionary) and zstd-compressed, in row
 groups of about 16 MiB of descriptors, so a reader can stream it; the topic column is
@@ -52,7 +51,7 @@ from memlog.io.atomic import atomic_output
 from memlog.io.base import FrameWindow
 from memlog.io.identity import same_identity
 from memlog.progress import info
-from memlog.selection.segment import SEGMENT_DEFAULTS, stop_rule
+from memlog.selection.segment import SEGMENT_DEFAULTS, recorded_still_distance
 
 __all__ = ["write_descriptors", "read_descriptors", "read_cached", "stored_dtype", "DTYPES"]
 
@@ -327,11 +326,10 @@ def read_cached(path: str | os.PathLike[str], log: str | os.PathLike[str], meta:
     if t.moving_index is None:
         info(f"not reusing {p}: it has no moving_index (written before stops were recorded)")
         return None
-    found, want = t.extra.get("stops"), stop_rule(still_distance)
-    if found != want:
-        how = (f"with still_distance {found.get('still_distance')}, not {still_distance:g}"
-               if isinstance(found, dict) and found.get("rule") == want["rule"]
-               else "by an older memlog (frame to frame)")
+    found = recorded_still_distance(t.extra)
+    if found != float(still_distance):
+        how = "by an older memlog (frame to frame)" if found is None else \
+            f"with still_distance {found:g}, not {still_distance:g}"
         info(f"not reusing {p}: its stops were found {how}")
         return None
     info(f"reusing descriptors {p} (same log, window and descriptor)")

@@ -87,7 +87,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import asdict, dataclass
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
 import numpy as np
@@ -101,7 +101,7 @@ from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
 
 __all__ = ["SegmentConfig", "SegmentDefaults", "SEGMENT_DEFAULTS", "select_segments", "segment_ids", "cut_segments",
            "shortlist_rows", "upper_bounds", "MS_DIGITS", "still_rows", "moving_index", "moving_index_of_views",
-           "STOP_RULE", "stop_rule", "combined_score", "geometric_score", "percentile_ranks"]
+           "STOP_RULE", "stop_rule", "recorded_still_distance", "combined_score", "geometric_score", "percentile_ranks"]
 
 SegmentBy = Literal["auto", "distance", "time", "count", "view"]
 Combine = Literal["rank", "geometric"]
@@ -467,6 +467,16 @@ def stop_rule(still_distance: float = SEGMENT_DEFAULTS.still_distance) -> dict[s
     kept with its moving index: two drives are matched along their moving indices only when
     their stops were found alike."""
     return {"rule": STOP_RULE, "still_distance": float(still_distance)}
+
+
+def recorded_still_distance(extra: Mapping[str, Any]) -> float | None:
+    """The ``still_distance`` a descriptor table's stops were found with under today's rule (its
+    ``extra["stops"]``, as :func:`stop_rule` wrote it); None when the table does not say, or
+    found them by another rule."""
+    rule = extra.get("stops")
+    if isinstance(rule, Mapping) and rule.get("rule") == STOP_RULE:
+        return float(rule["still_distance"])
+    return None
 
 
 def _moving_steps(view: ArrayLike, still: NDArray[np.bool_]) -> NDArray[np.float64]:

@@ -385,6 +385,8 @@ def evaluate(
     results: dict[str, Any] = {"memlog_version": __version__}
     by_kind: dict[str, dict[str, Any]] = {}
     main: tuple[Any, ...] | None = None
+    # both drives' stops found as `memlog map` finds the map's (its selection's still_distance)
+    still = cfg.select.still_distance
     for choice in choices:
         kind = choice.chosen
         if kind in by_kind:
@@ -392,8 +394,6 @@ def evaluate(
             continue
         describer = describers[kind]
         # 2. descriptors of every reference and query frame (unwhitened; cached per kind)
-        # both drives' stops found as `memlog map` finds the map's (its selection's still_distance)
-        still = cfg.select.still_distance
         ref_t = _described(reference, out / f"reference.{kind}.parquet", describer, ref_window, reports, still,
                            score_by_frame)
         q_t = _described(query, out / f"query.{kind}.parquet", describer, q_window, reports, still)

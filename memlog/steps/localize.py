@@ -51,7 +51,7 @@ from memlog.io.records import ReadReport
 from memlog.outputs.descriptor_table import read_cached, read_descriptors, stored_dtype, write_descriptors
 from memlog.outputs.matches import write_match_log, write_matches
 from memlog.progress import info, warning
-from memlog.selection.segment import SEGMENT_DEFAULTS, STOP_RULE
+from memlog.selection.segment import SEGMENT_DEFAULTS, recorded_still_distance
 
 __all__ = ["localize", "LocalizeConfig", "LocalizeResult", "describer_for"]
 
@@ -207,9 +207,9 @@ def map_still_distance(ref: DescriptorTable, path: str | os.PathLike[str], cfg: 
     query's stops are found alike; the default for a map that does not say (warning, when its
     stops are left out of the match: a map written before the rule was recorded found them frame
     to frame)."""
-    rule = ref.extra.get("stops")
-    if isinstance(rule, dict) and rule.get("rule") == STOP_RULE:
-        return float(rule["still_distance"])
+    recorded = recorded_still_distance(ref.extra)
+    if recorded is not None:
+        return recorded
     if ref.moving_index is not None and cfg.enabled and cfg.stops:
         warning(f"{path}: the map's stops were found by an older memlog (frame to frame: a slow crawl was one "
                 "stop), the query's are found from each stop's first frame; re-run `memlog map` to find both "
