@@ -6,8 +6,9 @@
 Reference drives: variants of the shared Nordland summer drive (:mod:`benchmarks.drives`):
 ``base`` (the drive as recorded; it already stands still at stations, e.g. frames 128-175),
 ``stops``, ``mixed`` and ``recorded`` (standing at the start and the end, stops, crawls at a
-third of the speed, stretches at 2x and 3x). Query: the winter drive (``base``), truth by source
-place (+-1 place). Descriptors: the whitened thumbnail (memlog's ``auto`` for 64x32 frames),
+third of the speed, stretches at 2x and 3x). Queries: variants of the winter drive (``--queries``,
+default ``base``, the drive as recorded, and ``mixed`` and ``recorded``, which stop, crawl and
+speed up where the reference drives do not), truth by source place (+-1 place). Descriptors: the whitened thumbnail (memlog's ``auto`` for 64x32 frames),
 whitening fitted on the reference drive; every map is searched map-only (only its frames) and
 the query is matched as ``memlog localize`` matches it by default (sequences of +-10 frames,
 speeds 0..3, stops left out: both drives along their moving index, a standing query frame taking
@@ -31,10 +32,14 @@ Maps (as many frames as ``--fractions`` of the drive's frames):
   looked at the drive);
 * ``every k-th``: evenly spaced frame indices (and its noise: R@1 of the maps of k-4..k+4 evenly
   spaced frames, whose spacing falls on other frames; and the query's: a 95 % interval of memlog's
-  R@1 minus every k-th frame's by a moving-block bootstrap over the query frames, blocks of 21);
+  R@1 minus every k-th frame's by a circular bootstrap over blocks of 21 source places, a
+  sequence's length, each block bringing every query frame that shows one of its places);
   ``random``: 20 seeds, mean +- std;
 * ``candidates`` table: K = 1, 2 and all (exact) candidates per segment (MS choosing between
   them for K >= 2).
+
+With several query drives the maps table is followed by R@1 pooled over them (every query frame
+of every drive counts once), with the same baselines.
 
 Prints Markdown tables (R@1 / AUC-PR, map-only).
 """
@@ -54,21 +59,24 @@ sys.path.insert(0, str(ROOT))
 from benchmarks import drives  # noqa: E402
 from benchmarks.sequence_table import SHARED, Drive, _describe, table, truth_sets, whiten  # noqa: E402
 
-REFERENCES = ["base", "stops", "mixed", "recorded"]
-QUERY = "base"
+REFERENCES = ["base", "stops", "mixed", "recorded", "double-rate"]
+QUERIES = ["base", "mixed", "recorded"]
 GENERATOR = "2"
+#: a query variant's noise seed (``base`` keeps the seed of the tables measured before query variants)
+QUERY_SEEDS = {"base": 100, "mixed": 101, "recorded": 102}
 
 
-def load(cache: Path) -> tuple[Drive, dict[str, Drive], dict[str, np.ndarray]]:
-    """(query, reference drives, view vectors of each reference drive's frames)."""
+def load(cache: Path, queries: list[str] = QUERIES) -> tuple[dict[str, Drive], dict[str, Drive], dict[str, np.ndarray]]:
+    """(query drives, reference drives, view vectors of each reference drive's frames)."""
     from memlog.io import open_log
     from memlog.scoring.scorer import view_vector
 
     cache.mkdir(parents=True, exist_ok=True)
     out: dict[str, Drive] = {}
+    qs: dict[str, Drive] = {}
     views: dict[str, np.ndarray] = {}
-    jobs = [("winter", QUERY, 100)] + [("summer", r, 200 + i) for i, r in enumerate(REFERENCES)]
-    query = None
+    jobs = ([("winter", q, QUERY_SEEDS.get(q, 110 + i)) for i, q in enumerate(queries)]
+            + [("summer", r, 200 + i) for i, r in enumerate(REFERENCES)])
     for drive, name, seed in jobs:
         v = drives.variant(name)
         log = cache / f"g{GENERATOR}-nordland_{drive}_{name}.mcap"
@@ -76,7 +84,7 @@ def load(cache: Path) -> tuple[Drive, dict[str, Drive], dict[str, np.ndarray]]:
             drives.write_variant(SHARED / drives.DRIVES[drive], v, log, positions=False, seed=seed)
         d = Drive(_describe(log, cache), v)
         if drive == "winter":
-            query = d
+            qs[name] = d
             continue
         out[name] = d
         vpath = cache / f"{log.stem}.views.npy"
@@ -84,8 +92,7 @@ def load(cache: Path) -> tuple[Drive, dict[str, Drive], dict[str, np.ndarray]]:
             with open_log(log) as r:
                 np.save(vpath, np.stack([view_vector(f.decode_bgr()) for f in r.frames()]).astype(np.float32))
         views[name] = np.load(vpath)
-    assert query is not None
-    return query, out, views
+    return qs, out, views
 
 
 def cheap_scores(cache: Path) -> dict[str, np.ndarray]:
@@ -194,15 +201,27 @@ def outcomes(q: Drive, r: Drive, mask: np.ndarray | None, seq: Any) -> tuple[np.
     return correct, curve.auc, loose
 
 
-def paired_interval(a: np.ndarray, b: np.ndarray, block: int = 21, n: int = 2000, seed: int = 0) -> tuple[float, float]:
-    """95 % interval of R@1(a) - R@1(b) (``a``, ``b``: per query frame right or not, in drive
-    order) by the moving-block bootstrap over query frames: blocks of ``block`` frames (a
-    sequence's 21), since neighbouring queries share most of their sequences."""
-    d = a.astype(np.float64) - b.astype(np.float64)
-    m = len(d)
-    starts = np.random.default_rng(seed).integers(0, max(1, m - block + 1), size=(n, -(-m // block)))
-    idx = np.minimum((starts[:, :, None] + np.arange(block)).reshape(n, -1)[:, :m], m - 1)
-    lo, hi = np.percentile(d[idx].mean(axis=1), [2.5, 97.5])
+def paired_interval(pairs: list[tuple[Drive, np.ndarray, np.ndarray]], block: int = 21, n: int = 2000,
+                    seed: int = 0) -> tuple[float, float]:
+    """95 % interval of R@1(a) - R@1(b) over the query frames of one or more query drives
+    (``pairs``: (query drive, per query frame right or not for map a, for map b)) by a block
+    bootstrap over the *source places*: blocks of ``block`` consecutive places (a sequence's 21),
+    each bringing every query frame of every drive that shows one of its places. Neighbouring
+    queries share most of their sequences, a stop's frames are one place, and the query drives
+    are re-timings of one winter drive: resampling places keeps all three dependencies together
+    (for a query drive that shows every place once, in order, this is the moving-block bootstrap
+    over its frames, with circular blocks)."""
+    n_places = 1 + max(int(q.variant.places.max()) for q, _a, _b in pairs)
+    diff = np.zeros(n_places)
+    count = np.zeros(n_places)
+    for q, x, y in pairs:
+        np.add.at(diff, q.variant.places, np.asarray(x, np.float64) - np.asarray(y, np.float64))
+        np.add.at(count, q.variant.places, 1.0)
+    # circular blocks (Politis & Romano): every place is equally likely to be drawn, the drive's
+    # first and last places too (a stop at the start or the end weighs as much as one mid-drive)
+    starts = np.random.default_rng(seed).integers(0, n_places, size=(n, -(-n_places // block)))
+    idx = ((starts[:, :, None] + np.arange(block)) % n_places).reshape(n, -1)[:, :n_places]
+    lo, hi = np.percentile(diff[idx].sum(axis=1) / count[idx].sum(axis=1), [2.5, 97.5])
     return float(lo), float(hi)
 
 
@@ -229,45 +248,75 @@ def memlog_mask(t: Any, frac: float, shortlist: int | None = 1, **sel: Any) -> n
     return np.asarray(s.keep, dtype=bool)
 
 
-def tab_maps(q: Drive, refs: dict[str, Drive], views: dict[str, np.ndarray], scores: Any, fracs: list[float]) -> None:
+def pooled_r1(results: list[tuple[np.ndarray, float, np.ndarray]]) -> float:
+    """R@1 over the query frames of several drives (each :func:`outcomes`), every frame once."""
+    return float(np.concatenate([o[0] for o in results]).mean())
+
+
+def tab_maps(queries: dict[str, Drive], refs: dict[str, Drive], views: dict[str, np.ndarray], scores: Any,
+             fracs: list[float], names: list[str]) -> None:
     from memlog.selection import random_masks, uniform_mask
     from memlog.selection.segment import still_rows
 
-    for mname, seq in matchers().items():
-        rows = []
-        loose = []
+    for mname in names:
+        seq = matchers()[mname]
+        rows, loose, prow = [], [], []
         for rname, r in refs.items():
-            whiten(r, [q])
+            whiten(r, list(queries.values()))
             t = score_table(r, views[rname], scores)
-            full = r_at_1(q, r, None, seq)
+            still = 0 if t.view is None else int(still_rows(t.view).sum())
             for frac in fracs:
                 m = memlog_mask(t, frac)
                 k = int(m.sum())
-                m0 = memlog_mask(t, frac, centre_tolerance=0.0)
-                mt = memlog_mask(t, frac, segment_by="time")
-                rand = [r_at_1(q, r, mm, seq) for mm in random_masks(len(r), k, range(20))]
-                mine, kth = outcomes(q, r, m, seq), outcomes(q, r, uniform_mask(len(r), k), seq)
-                got = {"memlog": summary(mine), "every k-th": summary(kth)}
-                lo, hi = paired_interval(mine[0], kth[0])
-                # every k-th frame's own noise: its R@1 at map sizes k-4..k+4 (the phase of the spacing)
-                near_k = [r_at_1(q, r, uniform_mask(len(r), kk), seq)[0] for kk in range(k - 4, k + 5)]
-                rows.append([rname, len(r), f"{frac:g} ({k})", fmt(full), fmt(got["memlog"]),
-                             fmt(r_at_1(q, r, m0, seq)), fmt(r_at_1(q, r, mt, seq)), fmt(got["every k-th"]),
-                             f"{min(near_k):.3f}–{max(near_k):.3f}",
-                             f"{got['memlog'][0] - got['every k-th'][0]:+.3f} ({lo:+.3f}..{hi:+.3f})",
-                             fmt_rand(rand), 0 if t.view is None else int(still_rows(t.view).sum())])
-                loose.append([rname, f"{frac:g} ({k})", f"{full[2]:.3f}", f"{got['memlog'][2]:.3f}",
-                              f"{got['every k-th'][2]:.3f}", f"{np.mean([x[2] for x in rand]):.3f}"])
-        print(f"\n### Maps of drive variants, matched by {mname} (R@1 / AUC-PR, map-only; query: winter)\n")
-        print(table(rows, ["reference", "frames", "fraction (frames)", "full map", "memlog",
+                size = f"{frac:g} ({k})"
+                maps = {"full": None, "memlog": m, "best bound": memlog_mask(t, frac, centre_tolerance=0.0),
+                        "time": memlog_mask(t, frac, segment_by="time"), "every k-th": uniform_mask(len(r), k)}
+                # every k-th frame's own noise: the maps of k-4..k+4 evenly spaced frames (the phase of the spacing)
+                near = [uniform_mask(len(r), kk) for kk in range(k - 4, k + 5)]
+                rand = list(random_masks(len(r), k, range(20)))
+                per_q = {}
+                for qname, q in queries.items():
+                    o = {name: outcomes(q, r, mask, seq) for name, mask in maps.items()}
+                    on = [outcomes(q, r, mask, seq) for mask in near]
+                    orand = [outcomes(q, r, mask, seq) for mask in rand]
+                    per_q[qname] = (q, o, on, orand)
+                    got = {name: summary(v) for name, v in o.items()}
+                    near_k = [summary(v)[0] for v in on]
+                    lo, hi = paired_interval([(q, o["memlog"][0], o["every k-th"][0])])
+                    rows.append([qname, rname, len(r), size, fmt(got["full"]), fmt(got["memlog"]),
+                                 fmt(got["best bound"]), fmt(got["time"]), fmt(got["every k-th"]),
+                                 f"{min(near_k):.3f}–{max(near_k):.3f}",
+                                 f"{got['memlog'][0] - got['every k-th'][0]:+.3f} ({lo:+.3f}..{hi:+.3f})",
+                                 fmt_rand([summary(v) for v in orand]), still])
+                    loose.append([qname, rname, size, f"{got['full'][2]:.3f}", f"{got['memlog'][2]:.3f}",
+                                  f"{got['every k-th'][2]:.3f}", f"{np.mean([summary(v)[2] for v in orand]):.3f}"])
+                if len(queries) > 1:
+                    qs = list(per_q.values())
+                    pr = {name: pooled_r1([o[name] for _q, o, _n, _r in qs]) for name in maps}
+                    near_p = [pooled_r1([on[i] for _q, _o, on, _r in qs]) for i in range(len(near))]
+                    rand_p = np.array([pooled_r1([orand[i] for _q, _o, _n, orand in qs]) for i in range(len(rand))])
+                    lo, hi = paired_interval([(q, o["memlog"][0], o["every k-th"][0]) for q, o, _n, _r in qs])
+                    prow.append([rname, size, f"{pr['full']:.3f}", f"{pr['memlog']:.3f}", f"{pr['every k-th']:.3f}",
+                                 f"{min(near_p):.3f}–{max(near_p):.3f}",
+                                 f"{pr['memlog'] - pr['every k-th']:+.3f} ({lo:+.3f}..{hi:+.3f})",
+                                 f"{rand_p.mean():.3f} ± {rand_p.std():.3f}"])
+        print(f"\n### Maps of drive variants, matched by {mname} (R@1 / AUC-PR, map-only; queries: winter drives)\n")
+        print(table(rows, ["query", "reference", "frames", "fraction (frames)", "full map", "memlog",
                            "memlog, best bound (centre tolerance 0)", "memlog, time segments",
                            "every k-th", "every k-th, k±4 frames (R@1 min–max)",
-                           "memlog − every k-th (95 % block bootstrap)", "random (20)", "still frames"]))
+                           "memlog − every k-th (95 % bootstrap over place blocks)", "random (20)", "still frames"]))
         if mname != "single":
             print(f"\nR@1 with a stop's frames as one place (truth: any frame of a stop holding a match of "
                   f"any frame of the query's stop), matched by {mname}:\n")
-            print(table(loose, ["reference", "fraction (frames)", "full map", "memlog", "every k-th",
+            print(table(loose, ["query", "reference", "fraction (frames)", "full map", "memlog", "every k-th",
                                 "random (20, mean)"]))
+        if prow:
+            print(f"\nR@1 pooled over the query drives ({', '.join(queries)}: "
+                  f"{sum(len(q) for q in queries.values())} query frames, each once), matched by {mname}:\n")
+            print(table(prow, ["reference", "fraction (frames)", "full map", "memlog", "every k-th",
+                               "every k-th, k±4 frames (min–max)",
+                               "memlog − every k-th (95 % bootstrap over place blocks, all drives together)",
+                               "random (20)"]))
 
 
 def tab_candidates(q: Drive, refs: dict[str, Drive], views: dict[str, np.ndarray], scores: Any,
@@ -313,11 +362,16 @@ def main() -> int:
     ap.add_argument("--scores", type=Path, help="the summer drive scored with memlog score --all-scores")
     ap.add_argument("--fractions", type=float, nargs="+", default=[0.5, 0.25])
     ap.add_argument("--tables", nargs="+", default=["stillness", "maps", "candidates"])
+    ap.add_argument("--queries", nargs="+", default=QUERIES, choices=list(drives.VARIANTS),
+                    help=f"winter drive variants matched against every map (default: {' '.join(QUERIES)})")
+    ap.add_argument("--matchers", nargs="+", default=list(matchers()), choices=list(matchers()),
+                    help="how the maps table matches (default: all three)")
     a = ap.parse_args()
-    q, refs, views = load(a.cache)
+    qs, refs, views = load(a.cache, a.queries)
+    q = qs["base"] if "base" in qs else next(iter(qs.values()))
     scores = source_scores(a.scores) or cheap_scores(a.cache)
     for name in a.tables:
-        {"maps": lambda: tab_maps(q, refs, views, scores, a.fractions),
+        {"maps": lambda: tab_maps(qs, refs, views, scores, a.fractions, a.matchers),
          "candidates": lambda: tab_candidates(q, refs, views, scores, a.fractions),
          "stillness": lambda: tab_stillness(refs, views)}[name]()
     return 0
