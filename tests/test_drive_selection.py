@@ -191,6 +191,33 @@ def test_the_map_and_a_described_query_carry_the_moving_index(tmp_path, monkeypa
     assert m0.moving_index.tolist() == m0.frame_index.tolist() and max(m0.frame_index) > 3
 
 
+def test_map_says_why_it_keeps_fewer_frames_than_keep_fraction_asks(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Source frames 0, 1, 1, 1, 2, 3, 0, 1: frame 1 stands still for two frames, so at most 6 of
+    the 8 segments that --keep-fraction 1 asks for can hold a frame; the CLI says so, with the
+    count of standing frames, and says nothing when every segment asked holds one."""
+    import re
+    import subprocess
+    import sys
+
+    from tests.conftest import repeating_log
+
+    log = tmp_path / "stop.mcap"
+    repeating_log(log)
+
+    def run(fraction: str) -> str:
+        r = subprocess.run([sys.executable, "-m", "memlog", "map", str(log), "-o", str(tmp_path / f"m{fraction}.mcap"),
+                            "--keep-fraction", fraction, "--descriptor", "none"], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        return r.stderr
+
+    said = re.search(r"fewer frames than --keep-fraction asks: (\d+) of the (\d+) segments hold a frame "
+                     r"\((\d+) frame\(s\) stood still", run("1"))
+    assert said is not None
+    made, asked, still = map(int, said.groups())
+    assert asked == 8 and still == 2 and made <= 6
+    assert "fewer frames than --keep-fraction asks" not in run("0.25")  # 2 segments, both hold frames
+
+
 def test_a_crawl_gets_fewer_map_frames_than_every_kth_frame_gives_it() -> None:
     """Creeping at 0.5 px per frame, then driving at 8 px per frame: a view-change map puts fewer
     frames on the crawl than every k-th frame does (which follows the frame count). (The measure
