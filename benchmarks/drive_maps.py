@@ -36,7 +36,7 @@ Maps (as many frames as ``--fractions`` of the drive's frames):
   sequence's length, each block bringing every query frame that shows one of its places);
   ``random``: 20 seeds, mean +- std;
 * ``candidates`` table: K = 1, 2 and all (exact) candidates per segment (MS choosing between
-  them for K >= 2).
+  them for K >= 2), per query drive and pooled over them.
 
 With several query drives the maps table is followed by R@1 pooled over them (every query frame
 of every drive counts once), with the same baselines.
@@ -319,25 +319,32 @@ def tab_maps(queries: dict[str, Drive], refs: dict[str, Drive], views: dict[str,
                                "random (20)"]))
 
 
-def tab_candidates(q: Drive, refs: dict[str, Drive], views: dict[str, np.ndarray], scores: Any,
+def tab_candidates(queries: dict[str, Drive], refs: dict[str, Drive], views: dict[str, np.ndarray], scores: Any,
                    fracs: list[float]) -> None:
     if scores is None or np.isnan(scores["ms"]).all():
         print("\n(candidates table: needs --scores)")
         return
     seq = matchers()["sequence"]
-    rows = []
+    columns: dict[str, tuple[int | None, dict[str, Any]]] = {
+        "K = 1 (default, centre rule)": (1, {}), "K = 1, best bound": (1, {"centre_tolerance": 0.0}),
+        "K = 2": (2, {}), "K = all (exact)": (None, {}), "exact without MS (SS, ES only)": (None, {"weights": (0.0, 1.0, 1.0)})}
+    rows, pooled = [], []
     for rname, r in refs.items():
-        whiten(r, [q])
+        whiten(r, list(queries.values()))
         t = score_table(r, views[rname], scores)
         for frac in fracs:
-            cells = [fmt(r_at_1(q, r, memlog_mask(t, frac, shortlist=k, **sel), seq))
-                     for k, sel in ((1, {}), (1, {"centre_tolerance": 0.0}), (2, {}), (None, {}))]
-            no_ms = memlog_mask(t, frac, shortlist=None, weights=(0.0, 1.0, 1.0))
-            rows.append([rname, f"{frac:g}", *cells, fmt(r_at_1(q, r, no_ms, seq))])
+            masks = [memlog_mask(t, frac, shortlist=k, **sel) for k, sel in columns.values()]
+            per_q = {qname: [outcomes(q, r, m, seq) for m in masks] for qname, q in queries.items()}
+            for qname, got in per_q.items():
+                rows.append([qname, rname, f"{frac:g}", *(fmt(summary(o)) for o in got)])
+            if len(queries) > 1:
+                pooled.append([rname, f"{frac:g}", *(f"{pooled_r1([got[i] for got in per_q.values()]):.3f}"
+                                                     for i in range(len(masks)))])
     print("\n### Does memorability help choose within a segment? (R@1 / AUC-PR, sequences, map-only)\n")
-    print(table(rows, ["reference", "fraction", "K = 1 (default, centre rule)", "K = 1, best bound", "K = 2",
-                       "K = all (exact)",
-                       "exact without MS (SS, ES only)"]))
+    print(table(rows, ["query", "reference", "fraction", *columns]))
+    if pooled:
+        print(f"\nR@1 pooled over the query drives ({', '.join(queries)}):\n")
+        print(table(pooled, ["reference", "fraction", *columns]))
 
 
 def tab_stillness(refs: dict[str, Drive], views: dict[str, np.ndarray]) -> None:
@@ -368,11 +375,10 @@ def main() -> int:
                     help="how the maps table matches (default: all three)")
     a = ap.parse_args()
     qs, refs, views = load(a.cache, a.queries)
-    q = qs["base"] if "base" in qs else next(iter(qs.values()))
     scores = source_scores(a.scores) or cheap_scores(a.cache)
     for name in a.tables:
         {"maps": lambda: tab_maps(qs, refs, views, scores, a.fractions, a.matchers),
-         "candidates": lambda: tab_candidates(q, refs, views, scores, a.fractions),
+         "candidates": lambda: tab_candidates(qs, refs, views, scores, a.fractions),
          "stillness": lambda: tab_stillness(refs, views)}[name]()
     return 0
 
