@@ -6,11 +6,12 @@
 Reference drives: variants of the shared Nordland summer drive (:mod:`benchmarks.drives`):
 ``base`` (the drive as recorded; it already stands still at stations, e.g. frames 128-175),
 ``stops``, ``mixed`` and ``recorded`` (standing at the start and the end, stops, crawls at a
-third of the speed, stretches at 2x and 3x). Queries: variants of the winter drive (``--queries``,
-default ``base``, the drive as recorded, and ``mixed`` and ``recorded``, which stop, crawl and
-speed up where the reference drives do not), truth by source place (+-1 place). Descriptors: the whitened thumbnail (memlog's ``auto`` for 64x32 frames),
-whitening fitted on the reference drive; every map is searched map-only (only its frames) and
-the query is matched as ``memlog localize`` matches it by default (sequences of +-10 frames,
+third of the speed, stretches at 2x and 3x) and ``double-rate`` (20 Hz, every place twice).
+Queries: variants of the winter drive (``--queries``, default ``base``, the drive as recorded,
+and ``mixed`` and ``recorded``, which stop, crawl and speed up as the reference drives of those
+names do, with their own noise), truth by source place (+-1 place). Descriptors: the whitened
+thumbnail (memlog's ``auto`` for 64x32 frames), whitening fitted on the reference drive; every
+map is searched map-only (only its frames) and the query is matched as ``memlog localize`` matches it by default (sequences of +-10 frames,
 speeds 0..3, stops left out: both drives along their moving index, a standing query frame taking
 its stop's match), with stops kept (``--keep-stops``: along the frame index) and frame by frame.
 Each sequence table is followed by R@1 under a stop-aware truth (a stop's frames are one place:
@@ -327,7 +328,8 @@ def tab_candidates(queries: dict[str, Drive], refs: dict[str, Drive], views: dic
     seq = matchers()["sequence"]
     columns: dict[str, tuple[int | None, dict[str, Any]]] = {
         "K = 1 (default, centre rule)": (1, {}), "K = 1, best bound": (1, {"centre_tolerance": 0.0}),
-        "K = 2": (2, {}), "K = all (exact)": (None, {}), "exact without MS (SS, ES only)": (None, {"weights": (0.0, 1.0, 1.0)})}
+        "K = 2": (2, {}), "K = all (exact)": (None, {}),
+        "exact without MS (SS, ES only)": (None, {"weights": (0.0, 1.0, 1.0)})}
     rows, pooled = [], []
     for rname, r in refs.items():
         whiten(r, list(queries.values()))
