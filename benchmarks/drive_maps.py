@@ -169,13 +169,6 @@ def stop_truth(q: Drive, r: Drive) -> list[set[int]]:
     return out
 
 
-def r_at_1(q: Drive, r: Drive, mask: np.ndarray | None, seq: Any) -> tuple[float, float, float]:
-    """(R@1, AUC-PR, R@1 with a stop's frames as one place) of the map ``mask``, matched as
-    ``memlog localize`` matches (with ``seq.stops``: along the moving index, a standing query
-    frame taking its stop's match)."""
-    return summary(outcomes(q, r, mask, seq))
-
-
 def summary(o: tuple[np.ndarray, float, np.ndarray]) -> tuple[float, float, float]:
     """(R@1, AUC-PR, R@1 with a stop's frames as one place) of :func:`outcomes`."""
     correct, auc, loose = o
@@ -183,8 +176,9 @@ def summary(o: tuple[np.ndarray, float, np.ndarray]) -> tuple[float, float, floa
 
 
 def outcomes(q: Drive, r: Drive, mask: np.ndarray | None, seq: Any) -> tuple[np.ndarray, float, np.ndarray]:
-    """Per query frame, whether its best match is right (and with a stop's frames as one place),
-    and the AUC-PR (see :func:`r_at_1`)."""
+    """Per query frame, whether its best match in the map ``mask`` is right (and with a stop's
+    frames as one place), and the AUC-PR; matched as ``memlog localize`` matches (with
+    ``seq.stops``: along the moving index, a standing query frame taking its stop's match)."""
     from memlog.descriptors.sequence import match_sequences, uses_stops
     from memlog.evaluation.metrics import pr_curve
 
