@@ -232,14 +232,12 @@ def test_resume_skips_a_map_without_descriptors(tmp_path: Path, monkeypatch: pyt
 
 
 def _killer(*args: object) -> object:
-    """A scoring job that kills its worker process the first time it runs (out of memory, say)."""
-    marker = Path(os.environ["MEMLOG_TEST_MARKER"])
-    if marker.exists():
-        marker.unlink()
-        os._exit(1)
+    """A scoring job whose worker process dies (out of memory, say) the first time a job ends:
+    exactly one worker wins the marker's unlink, so no other job sees the marker vanish under it."""
     from tests import test_batch
+    from tests.worker_kill import die_once
 
-    return test_batch._REAL_SCORE_CHUNK(*args)
+    return die_once(os.environ["MEMLOG_TEST_MARKER"], test_batch._REAL_SCORE_CHUNK, *args)
 
 
 def test_a_broken_pool_is_replaced_for_the_logs_after_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -264,6 +262,27 @@ def test_a_broken_pool_is_replaced_for_the_logs_after_it(tmp_path: Path, monkeyp
     assert status[-1] == "ok" and status.count("ok") >= 2, status  # the logs after the break ran
     assert sum(r.worker_failures for r in res.logs) >= 1
 
+
+
+def test_no_log_starts_on_a_pool_that_already_lost_a_worker() -> None:
+    """The pool can break while another log runs, before that log sees it (the CI run of stop 28:
+    a log failing on its own left the broken pool to the next log): the next log gets a new pool."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    from memlog.steps.batch import _Executors
+    from tests.test_workers import _die, _finish_late
+
+    executors = _Executors(BatchConfig(workers=2))
+    try:
+        first = executors.get()
+        with pytest.raises(BrokenProcessPool):
+            list(first.map_ordered(_die, [(1,)]))
+        second = executors.get()  # nobody called broken(): the pool says so itself
+        assert second is not first
+        assert [i for i, _ in second.map_ordered(_finish_late, [(0, 0.0), (1, 0.0)])] == [0, 1]
+        assert executors.get() is second  # a working pool is kept
+    finally:
+        executors.close()
 
 # -- the real models, every fixture format ----------------------------------------------------------
 #: one fixture per log format and message encoding memlog reads: MCAP (ROS 2 CDR, ROS 1, ROS 2 IDL,

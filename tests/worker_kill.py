@@ -1,4 +1,6 @@
-"""A Ray worker killed mid-task, from the test side (the package has no test hook for it).
+"""A worker process killed mid-task, from the test side (the package has no test hook for it).
+
+:func:`die_once` also kills a local pool's worker (``tests/test_batch.py``).
 
 :func:`kill_one_worker` makes every job of :class:`~memlog.steps.ray_pool.RayActors` run through
 :func:`die_once`: the first worker to finish a job while the marker file exists removes it and

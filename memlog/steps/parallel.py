@@ -114,6 +114,11 @@ class Processes:
                     f.cancel()
                 raise
 
+    @property
+    def broken(self) -> bool:
+        """A worker process died: every job submitted from now on fails with ``BrokenProcessPool``."""
+        return bool(getattr(self._pool, "_broken", False))
+
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
