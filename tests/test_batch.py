@@ -231,6 +231,29 @@ def test_resume_skips_a_map_without_descriptors(tmp_path: Path, monkeypatch: pyt
     assert [r.status for r in batch(logs, out, cfg).logs] == ["skipped"]
 
 
+
+def test_batch_says_when_a_map_is_smaller_than_asked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """As ``memlog map`` does (``tests/test_drive_selection.py``): frame 1 of the log stands still
+    for two frames, so 6 of the 8 segments ``keep_fraction=1`` asks for hold a frame; the log's
+    line and ``batch.json`` say so, and say nothing when every segment holds one."""
+    from memlog.selection.config import SelectionConfig
+    from tests.conftest import repeating_log
+
+    use_stand_in(monkeypatch)
+    log = tmp_path / "stop.mcap"
+    repeating_log(log)
+    for fraction, out in ((1.0, tmp_path / "all"), (0.25, tmp_path / "quarter")):
+        cfg = BatchConfig(map=MapConfig(select=SelectionConfig(keep_fraction=fraction), descriptor=None), workers=1)
+        r = batch([log], out, cfg).logs[0]
+        assert r.status == "ok"
+        summary = json.loads((out / "batch.json").read_text())["logs"][0]["notes"]
+        if fraction == 1.0:
+            assert r.notes == summary == ["/camera/image/compressed: fewer frames than --keep-fraction asks: 6 of "
+                                          "the 8 segments hold a frame (2 frame(s) stood still, and a stop is one "
+                                          "place)"] and r.kept is not None and r.kept <= 6
+        else:
+            assert r.notes == summary == [] and r.kept is not None and 1 <= r.kept <= 2
+
 def _killer(*args: object) -> object:
     """A scoring job whose worker process dies (out of memory, say) the first time a job ends:
     exactly one worker wins the marker's unlink, so no other job sees the marker vanish under it."""

@@ -331,11 +331,9 @@ def cmd_map(args: argparse.Namespace) -> int:
         gaps = len(s.gaps)
         info(f"{t}: {s.n_kept}/{s.n_frames} kept; dropped: "
              + ", ".join(f"{k} {v}" for k, v in s.reason_counts().items()) + (f"; {gaps} gap(s)" if gaps else ""))
-        asked, made = s.info.get("n_bins"), s.info.get("n_segments")
-        if asked is not None and made is not None and made < asked:
-            still = s.info.get("still_frames") or 0
-            info(f"{t}: fewer frames than --keep-fraction asks: {made} of the {asked} segments hold a frame"
-                 + (f" ({still} frame(s) stood still, and a stop is one place)" if still else ""))
+        short = s.shortfall()
+        if short:
+            info(f"{t}: {short}")
     if res.crops_run is not None and res.crops_full:
         info(f"ResMem ran {res.crops_run} crops, {100 * res.crops_run / res.crops_full:.0f} % of the "
              f"{res.crops_full} scoring every frame would run")

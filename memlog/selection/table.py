@@ -304,6 +304,16 @@ class Selection:
         """Kept frames / all frames (0.0 for an empty table)."""
         return self.n_kept / self.n_frames if self.n_frames else 0.0
 
+    def shortfall(self) -> str | None:
+        """Why a segment selection kept fewer frames than its keep fraction asks (some segments
+        hold no frame: a stop is one place), or None when it kept as many as asked."""
+        asked, made = self.info.get("n_bins"), self.info.get("n_segments")
+        if asked is None or made is None or made >= asked:
+            return None
+        still = self.info.get("still_frames") or 0
+        return (f"fewer frames than --keep-fraction asks: {made} of the {asked} segments hold a frame"
+                + (f" ({still} frame(s) stood still, and a stop is one place)" if still else ""))
+
     def reason_counts(self) -> dict[str, int]:
         """Number of dropped frames per reason."""
         return dict(Counter(r for r in self.reason if r is not None))

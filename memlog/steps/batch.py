@@ -139,7 +139,8 @@ def model_versions(names: Sequence[str]) -> dict[str, str | None]:
 class LogResult:
     """What happened to one log: ``status`` ok, damaged (finished, input damaged), failed (see
     ``error``) or skipped (outputs up to date); ``frames`` scored and ``kept`` in the map;
-    ``worker_failures``: worker processes lost (and their jobs retried) while it ran."""
+    ``worker_failures``: worker processes lost (and their jobs retried) while it ran; ``notes``:
+    what the map's topics say of themselves (a map smaller than the keep fraction asks, and why)."""
 
     log: str
     name: str
@@ -155,13 +156,14 @@ class LogResult:
     settings: str | None = None
     report: ReadReport | None = None
     files: dict[str, dict[str, int]] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "log": self.log, "name": self.name, "status": self.status, "frames": self.frames, "kept": self.kept,
             "seconds": round(self.seconds, 3), "worker_failures": self.worker_failures, "damage": self.damage,
             "error": self.error, "identity": self.identity, "settings_sha256": self.settings, "outputs": self.outputs,
-            "files": self.files,
+            "files": self.files, "notes": self.notes,
         }
 
 
@@ -425,6 +427,8 @@ def batch(
                         line += f", {r.frames} frames, {r.kept} kept, {r.seconds:.1f} s"
                     if r.worker_failures:
                         line += f", {r.worker_failures} worker failure(s) retried"
+                    if r.notes:
+                        line += "; " + "; ".join(r.notes)
                     (bar.write if bar is not None else info)(line + (f": {r.error}" if r.error else ""))
                     save()
         finally:
@@ -526,6 +530,7 @@ def _run_one(r: LogResult, cfg: BatchConfig, window: FrameWindow, settings: str,
         r.frames = sum(t.frames_seen for t in run.topics.values())
         res = make_map(r.log, r.outputs["map"], cfg.map, executor=ex)
         r.kept = res.frames_kept
+        r.notes = [f"{t}: {short}" for t, sel in res.selections.items() if (short := sel.shortfall())]
         damage = run.report.damage()
         if res.report is not None:
             damage += [d for d in res.report.damage() if d not in damage]
