@@ -268,9 +268,7 @@ class _Executors:
 
     def _get(self) -> Executor:
         if self.ex is not None and getattr(self.ex, "broken", False):
-            # lost a worker while another log ran, before that log saw it: this log gets a new pool
-            self.ex.close()
-            self.ex = None
+            self.broken(self.ex)  # lost a worker while another log ran, before that log saw it
         if self.ex is not None:
             return self.ex
         cfg = self.cfg
