@@ -231,7 +231,6 @@ def test_resume_skips_a_map_without_descriptors(tmp_path: Path, monkeypatch: pyt
     assert [r.status for r in batch(logs, out, cfg).logs] == ["skipped"]
 
 
-
 def test_batch_says_when_a_map_is_smaller_than_asked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """As ``memlog map`` does (``tests/test_drive_selection.py``): frame 1 of the log stands still
     for two frames, so 6 of the 8 segments ``keep_fraction=1`` asks for hold a frame; the log's
@@ -253,6 +252,7 @@ def test_batch_says_when_a_map_is_smaller_than_asked(tmp_path: Path, monkeypatch
                                           "place)"] and r.kept is not None and r.kept <= 6
         else:
             assert r.notes == summary == [] and r.kept is not None and 1 <= r.kept <= 2
+
 
 def _killer(*args: object) -> object:
     """A scoring job whose worker process dies (out of memory, say) the first time a job ends:
@@ -286,26 +286,27 @@ def test_a_broken_pool_is_replaced_for_the_logs_after_it(tmp_path: Path, monkeyp
     assert sum(r.worker_failures for r in res.logs) >= 1
 
 
-
 def test_no_log_starts_on_a_pool_that_already_lost_a_worker() -> None:
     """The pool can break while another log runs, before that log sees it (the CI run of stop 28:
     a log failing on its own left the broken pool to the next log): the next log gets a new pool."""
     from concurrent.futures.process import BrokenProcessPool
 
     from memlog.steps.batch import _Executors
-    from tests.test_workers import _die, _finish_late
+    from tests.test_workers import _finish_late
+    from tests.worker_kill import die_now
 
     executors = _Executors(BatchConfig(workers=2))
     try:
         first = executors.get()
         with pytest.raises(BrokenProcessPool):
-            list(first.map_ordered(_die, [(1,)]))
+            list(first.map_ordered(die_now, [(1,)]))
         second = executors.get()  # nobody called broken(): the pool says so itself
         assert second is not first
         assert [i for i, _ in second.map_ordered(_finish_late, [(0, 0.0), (1, 0.0)])] == [0, 1]
         assert executors.get() is second  # a working pool is kept
     finally:
         executors.close()
+
 
 # -- the real models, every fixture format ----------------------------------------------------------
 #: one fixture per log format and message encoding memlog reads: MCAP (ROS 2 CDR, ROS 1, ROS 2 IDL,

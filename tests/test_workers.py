@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 
@@ -78,20 +77,17 @@ def test_executors_keep_job_order(make) -> None:  # type: ignore[no-untyped-def]
     assert threads_per_worker(2, 0) >= 1 and threads_per_worker(4, 3) == 3
 
 
-def _die(code: int) -> int:
-    """A job whose worker process ends at once, as a process killed for memory does."""
-    os._exit(code)
-
-
 def test_a_pool_that_lost_a_worker_says_it_is_broken() -> None:
     """``Processes.broken`` turns true when a worker dies, so ``memlog batch`` starts no log on it."""
     from concurrent.futures.process import BrokenProcessPool
+
+    from tests.worker_kill import die_now
 
     ex = Processes(2)
     try:
         assert list(ex.map_ordered(_finish_late, [(0, 0.0)])) and not ex.broken
         with pytest.raises(BrokenProcessPool):
-            list(ex.map_ordered(_die, [(1,)]))
+            list(ex.map_ordered(die_now, [(1,)]))
         assert ex.broken
     finally:
         ex.close()

@@ -1,6 +1,7 @@
 """A worker process killed mid-task, from the test side (the package has no test hook for it).
 
-:func:`die_once` also kills a local pool's worker (``tests/test_batch.py``).
+:func:`die_once` also kills a local pool's worker (``tests/test_batch.py``), and :func:`die_now`
+is a job whose worker ends at once (``tests/test_workers.py``).
 
 :func:`kill_one_worker` makes every job of :class:`~memlog.steps.ray_pool.RayActors` run through
 :func:`die_once`: the first worker to finish a job while the marker file exists removes it and
@@ -16,7 +17,7 @@ import functools
 import os
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import pytest
 
@@ -30,6 +31,11 @@ def die_once(marker: str, fn: Callable[..., Any], *job: Any) -> Any:
     except FileNotFoundError:
         return result
     os._exit(1)
+
+
+def die_now(code: int) -> NoReturn:
+    """A job whose worker process ends at once, as a process killed for memory does."""
+    os._exit(code)
 
 
 def kill_one_worker(monkeypatch: pytest.MonkeyPatch, marker: Path) -> None:
