@@ -1,7 +1,7 @@
 """Error classes, one per module family (like rosbags), and which exit code each means.
 
 * :class:`UsageError` (exit 2): the command was called wrongly (a flag value, a config key or
-  value, an output path). Raised before any expensive work.
+  value, an output path, a path that is a symlink loop). Raised before any expensive work.
 * :class:`LogReadError` etc. (exit 1): the work could not be done; nothing was written under
   the output's name. Damaged input that could still be read is not an error: the run finishes
   and exits 3 (see :mod:`memlog.cli`).
@@ -14,6 +14,7 @@ __all__ = [
     "UsageError",
     "ConfigError",
     "OutputPathError",
+    "SymlinkLoopError",
     "TopicError",
     "LogReadError",
     "ImageDecodeError",
@@ -40,6 +41,11 @@ class ConfigError(UsageError):
 
 class OutputPathError(UsageError):
     """An output path cannot be used (missing directory, a directory, or one of the inputs)."""
+
+
+class SymlinkLoopError(UsageError):
+    """A path given to memlog (an input or an output) is, or passes through, a symbolic link
+    loop, so it names no file."""
 
 
 class TopicError(UsageError):

@@ -4,12 +4,14 @@ Every file memlog writes goes through :class:`AtomicFile`: the data goes to a te
 beside the target (``.<name>.<random>.tmp``), which is fsynced, given the normal file mode and
 renamed over the target only when complete. An interrupted run never leaves a half-written
 file under the final name, and an existing file there stays untouched until the new one is
-complete.
+complete. Files that only make sense together (a map and its descriptors) are put in place by
+:func:`commit_together`, so that a new file never stands beside an old companion.
 
 Output paths (:func:`check_output`): memlog creates the output itself (a file, or the output
 directory of ``evaluate``/``batch``) but never a missing parent directory, and an output may
 never be one of the command's inputs (compared by resolved path and by ``os.path.samefile``,
-so hard links, symlinks and ``./x`` vs ``x`` are caught).
+so hard links, symlinks and ``./x`` vs ``x`` are caught). Paths are followed by
+:func:`memlog.io.paths.resolve_path`: an output or input that is a symlink loop is a usage error.
 """
 
 from __future__ import annotations
@@ -17,14 +19,16 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import BinaryIO
 
-from memlog.errors import LogWriteError, OutputPathError
+from memlog.errors import LogWriteError, OutputPathError, SymlinkLoopError
+from memlog.io.paths import resolve_path
 
-__all__ = ["AtomicFile", "atomic_output", "write_bytes_atomic", "file_mode", "check_output", "same_path"]
+__all__ = ["AtomicFile", "atomic_output", "write_bytes_atomic", "file_mode", "check_output", "same_path",
+           "commit_together"]
 
 PathLike = str | os.PathLike[str]
 
@@ -40,9 +44,9 @@ def same_path(a: PathLike, b: PathLike) -> bool:
     """Whether ``a`` and ``b`` name the same file or directory (resolved path, or samefile)."""
     pa, pb = Path(a), Path(b)
     try:
-        if pa.resolve() == pb.resolve():
+        if resolve_path(pa) == resolve_path(pb):
             return True
-    except OSError:
+    except (OSError, SymlinkLoopError):
         pass
     try:
         return pa.exists() and pb.exists() and os.path.samefile(pa, pb)
@@ -52,9 +56,9 @@ def same_path(a: PathLike, b: PathLike) -> bool:
 
 def _inside(path: Path, directory: Path) -> bool:
     try:
-        path.resolve().relative_to(directory.resolve())
+        resolve_path(path).relative_to(resolve_path(directory))
         return True
-    except (ValueError, OSError):
+    except (ValueError, OSError, SymlinkLoopError):
         return False
 
 
@@ -66,10 +70,15 @@ def check_output(
     The parent directory must exist (memlog never creates it); a file output must not be an
     existing directory (``directory=True``: an output directory must not be an existing file);
     the output must not be any of ``inputs`` nor lie inside an input directory (a ROS 2 bag).
+    An output or input that is (or passes through) a symlink loop raises
+    :class:`~memlog.errors.SymlinkLoopError` (a usage error too).
     """
     out = Path(output)
     if str(output) == "":
         raise OutputPathError(f"{flag}: empty output path")
+    resolve_path(out, flag)
+    for inp in inputs:
+        resolve_path(inp)
     parent = out.parent if str(out.parent) else Path(".")
     if not parent.is_dir():
         raise OutputPathError(f"{flag} {out}: directory {parent} does not exist (memlog does not create it)")
@@ -164,3 +173,51 @@ def write_bytes_atomic(path: PathLike, data: bytes, check: Callable[[Path], None
             af.fh.flush()
             check(af.tmp)
     return Path(path)
+
+
+def commit_together(files: Sequence[AtomicFile], stale: Iterable[PathLike] = ()) -> None:
+    """Put complete files that belong together (a map and its descriptors) in place so that a new
+    file never stands beside an old companion.
+
+    The old files at the targets of ``files[1:]`` (and the ``stale`` paths: old companions that
+    get no new version) are first moved aside (renamed to ``.NAME.*.old`` in their directory),
+    then ``files`` are committed in order, then the moved-aside files are removed. When a step
+    fails, the others are undone as far as they can be and the exception propagates: before the
+    first commit, the moved-aside files are moved back (the old set is as it was); after it, the
+    new files committed so far are removed as well (the old first file was already replaced, so
+    none of the set is left). Only a crash inside this function (power loss, SIGKILL) can leave
+    an incomplete set: a first file (old or new) without its companions, and the moved-aside
+    files beside it — never a new file beside an old companion.
+    """
+    aside: list[tuple[Path, Path]] = []  # (target, where its old file went)
+    committed: list[AtomicFile] = []
+    try:
+        for target in [f.path for f in files[1:]] + [Path(p) for p in stale]:
+            if os.path.lexists(target):
+                fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent)
+                os.close(fd)
+                try:
+                    os.replace(target, tmp)
+                except BaseException:
+                    os.unlink(tmp)
+                    raise
+                aside.append((target, Path(tmp)))
+        for f in files:
+            f.commit()
+            committed.append(f)
+    except BaseException:
+        for f in files:
+            f.abort()  # (a no-op for those committed)
+        for f in committed:
+            with contextlib.suppress(OSError):
+                f.path.unlink()
+        for target, old in reversed(aside):
+            with contextlib.suppress(OSError):
+                if committed:
+                    old.unlink()
+                else:
+                    os.replace(old, target)
+        raise
+    for _target, old in aside:
+        with contextlib.suppress(OSError):
+            old.unlink()

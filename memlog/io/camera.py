@@ -12,7 +12,7 @@ from typing import Any
 
 from memlog.io.types import ImagePayload
 
-__all__ = ["camera_kind", "extract_image", "normalize_msgtype"]
+__all__ = ["camera_kind", "extract_image", "header_stamp", "normalize_msgtype"]
 
 _COMPRESSED = {
     "sensor_msgs/CompressedImage",
@@ -60,6 +60,13 @@ def _stamp_ns(stamp: Any) -> int | None:
     return int(sec) * 1_000_000_000 + int(nsec or 0)
 
 
+def header_stamp(msg: Any) -> int | None:
+    """The stamp (ns) a decoded message carries: ``header.stamp`` (std_msgs/Header, ROS 1 and
+    ROS 2), else a Foxglove ``timestamp``; None when it has neither."""
+    header = _get(msg, "header")
+    return _stamp_ns(_get(header, "stamp") if header is not None else _get(msg, "timestamp"))
+
+
 def _as_bytes(data: Any) -> bytes:
     if isinstance(data, bytes):
         return data
@@ -76,12 +83,8 @@ def extract_image(msgtype: str, msg: Any) -> tuple[int | None, str, ImagePayload
     if kind is None:
         raise ValueError(f"{msgtype} is not an image message type")
     header = _get(msg, "header")
-    if header is not None:  # sensor_msgs
-        stamp = _stamp_ns(_get(header, "stamp"))
-        frame_id = str(_get(header, "frame_id", "") or "")
-    else:  # foxglove
-        stamp = _stamp_ns(_get(msg, "timestamp"))
-        frame_id = str(_get(msg, "frame_id", "") or "")
+    stamp = header_stamp(msg)
+    frame_id = str(_get(header if header is not None else msg, "frame_id", "") or "")  # sensor_msgs, foxglove
     data = _as_bytes(_get(msg, "data", b""))
     if kind == "compressed":
         return stamp, frame_id, ImagePayload("compressed", str(_get(msg, "format", "") or ""), data)

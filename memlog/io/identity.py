@@ -14,13 +14,14 @@ from pathlib import Path
 from typing import Any
 
 from memlog.errors import ConfigError
+from memlog.io.paths import resolve_path
 
 __all__ = ["log_identity", "same_identity", "log_name", "log_names"]
 
 
 def log_identity(path: str | os.PathLike[str]) -> dict[str, Any]:
     """``{"path", "size", "mtime_ns"}`` of a log file or bag directory (JSON-ready)."""
-    p = Path(path).resolve()
+    p = resolve_path(path)
     if p.is_dir():
         files = sorted(f for f in p.rglob("*") if f.is_file())
         stats = [f.stat() for f in files]

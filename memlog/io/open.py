@@ -8,6 +8,7 @@ from pathlib import Path
 from memlog.errors import LogReadError
 from memlog.io._damage import check_regular_file
 from memlog.io.base import LogReader
+from memlog.io.paths import resolve_path
 
 __all__ = ["open_log", "sniff_format"]
 
@@ -17,8 +18,10 @@ _SQLITE = b"SQLite format 3\x00"
 
 
 def sniff_format(path: str | os.PathLike[str]) -> str:
-    """``"mcap"``, ``"ros1bag"`` or ``"ros2bag"``; :class:`LogReadError` otherwise."""
+    """``"mcap"``, ``"ros1bag"`` or ``"ros2bag"``; :class:`LogReadError` otherwise
+    (:class:`~memlog.errors.SymlinkLoopError` when ``path`` is a symlink loop)."""
     p = Path(path)
+    resolve_path(p)  # a symlink loop is a usage error, not a missing file
     if not p.exists():
         raise LogReadError(f"{p}: no such file or directory")
     if p.is_dir():

@@ -69,8 +69,10 @@ class ReadReport:
     ``bytes_read`` says how far the reader got; ``index_damaged`` when the log's index (MCAP
     summary, bag index, ROS 2 metadata) is unreadable or disagrees with the data, which was
     read instead; ``skipped_files`` counts storage files of a ROS 2 bag that could not be read
-    at all; ``warnings`` are human-readable lines that name the file, topic and message
-    index.
+    at all; ``retimed_messages`` counts messages kept although the log's time for them was
+    damaged (a ROS 2 ``.db3`` row whose timestamp is not a time): they carry their header stamp,
+    else a neighbouring message's time; ``warnings`` are human-readable lines that name the
+    file, topic and message index.
     """
 
     path: str
@@ -81,6 +83,7 @@ class ReadReport:
     undecodable_frames: int = 0
     index_damaged: bool = False
     skipped_files: int = 0
+    retimed_messages: int = 0
     warnings: list[str] = field(default_factory=list)
     places: set[tuple[str, Hashable]] = field(default_factory=set, repr=False, compare=False)
 
@@ -90,7 +93,8 @@ class ReadReport:
 
     def count(self, kind: str, place: Hashable) -> bool:
         """Count one damaged ``place`` (a chunk's offset, a message's location) under ``kind``
-        (``skipped_chunks``, ``bad_messages``, ``undecodable_frames``, ``skipped_files``), once:
+        (``skipped_chunks``, ``bad_messages``, ``undecodable_frames``, ``skipped_files``,
+        ``retimed_messages``), once:
         a second pass over the same damage is not new damage. Returns whether it was new."""
         key = (kind, place)
         if key in self.places:
@@ -106,7 +110,7 @@ class ReadReport:
         self.index_damaged |= other.index_damaged
         if other.bytes_read is not None:
             self.bytes_read = other.bytes_read if self.bytes_read is None else min(self.bytes_read, other.bytes_read)
-        for kind in ("skipped_chunks", "bad_messages", "undecodable_frames", "skipped_files"):
+        for kind in ("skipped_chunks", "bad_messages", "undecodable_frames", "skipped_files", "retimed_messages"):
             placed = [p for k, p in other.places if k == kind]
             unplaced = getattr(other, kind) - len(placed)  # counted without a place: always added
             setattr(self, kind, getattr(self, kind) + max(0, unplaced))
@@ -118,7 +122,7 @@ class ReadReport:
     @property
     def ok(self) -> bool:
         return not (self.truncated or self.skipped_chunks or self.bad_messages or self.undecodable_frames
-                    or self.index_damaged or self.skipped_files)
+                    or self.index_damaged or self.skipped_files or self.retimed_messages)
 
     def damage(self) -> list[str]:
         """What was damaged, one phrase each (empty when :attr:`ok`)."""
@@ -133,6 +137,9 @@ class ReadReport:
             parts.append(f"{self.undecodable_frames} frame(s) did not decode")
         if self.skipped_files:
             parts.append(f"{self.skipped_files} unreadable storage file(s) skipped")
+        if self.retimed_messages:
+            parts.append(f"{self.retimed_messages} message(s) without a valid log time kept at their header stamp "
+                         "(else a neighbour's time)")
         if self.index_damaged:
             parts.append("its index is damaged or disagrees with the data (the data was read)")
         return parts

@@ -7,9 +7,10 @@ its own, so a damaged or foreign file costs only its own messages:
 * a ``.db3`` is read with sqlite (read-only, immutable): topics and message definitions from its
   own tables; rows located by id one at a time, so a damaged page loses only the rows on it; a
   cut file whose header claims more pages than it has is read from a private temporary copy with
-  the page count corrected; rows with a timestamp that is not a non-negative integer, an unknown
-  topic or data that is not a blob are reported and skipped; messages come in log-time order
-  (timestamp, then row id);
+  the page count corrected; rows with an unknown topic or data that is not a blob are reported
+  and skipped; a row whose timestamp is not a non-negative integer keeps its message at the
+  message's header stamp (else the previous row's time), reported; messages come in log-time
+  order (timestamp, then row id);
 * an ``.mcap`` file is read by :class:`memlog.io.mcap.McapLog` with all its damage handling;
 * ``NAME.zstd`` (file-compressed storage) is decompressed to a temporary file first.
 
@@ -25,13 +26,14 @@ the storage (files, topics, types, counts, compression) is reported as a damaged
 from __future__ import annotations
 
 import copy
+import functools
 import heapq
 import os
 import shutil
 import sqlite3
 import struct
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -149,8 +151,14 @@ class _Db3:
         except sqlite3.DatabaseError:
             return None
 
-    def rows(self) -> tuple[Any, Any, Any]:
-        """(row ids, topic ids, timestamps) of every readable, valid row, in (timestamp, id) order."""
+    def rows(self, header_stamp: Callable[[int, bytes], int | None] | None = None) -> tuple[Any, Any, Any]:
+        """(row ids, topic ids, timestamps) of every readable, valid row, in (timestamp, id) order;
+        found once (the bag reader's first call passes ``header_stamp``: (topic id, message bytes)
+        -> the message's header stamp or None).
+
+        A row whose timestamp is not a non-negative integer (SQLite columns take any type) keeps
+        its message: its time is the message's header stamp, else the previous row's time (the
+        next row's for the first rows), reported (``retimed_messages``) with file, topic and row."""
         import numpy as np
 
         if self._rows is not None:
@@ -160,21 +168,53 @@ class _Db3:
         ts: list[int] = []
         rep = self.owner.report
         bad = 0
+        retimed = 0
+        prev: int | None = None  # the time of the row before (row id order: the order of recording)
+        waiting: list[tuple[int, int, Any, Any]] = []  # (place in ts, row id, topic id, timestamp): no time yet
         last = -(1 << 63)
         damaged_at: int | None = None
 
+        def retime(rid: int, tid: int, t: Any, how: str) -> None:
+            nonlocal retimed
+            if rep.count("retimed_messages", (str(self.path), rid)):
+                retimed += 1
+                if retimed <= 5:
+                    self.owner.warn(f"{self.path}: topic {self.topics[tid][0]}: message row {rid}: timestamp {t!r} "
+                                    f"is not a time; its message is kept at {how}")
+
         def add(rid: Any, tid: Any, t: Any) -> None:
-            nonlocal bad
-            if type(t) is not int or t < 0 or tid not in self.topics:
+            nonlocal bad, prev
+            if tid not in self.topics:
                 bad += 1
                 if bad <= 5:
-                    why = (f"timestamp {t!r} is not a time" if type(t) is not int or t < 0
-                           else f"topic id {tid!r} is not in its topics table")
-                    self.owner.warn(f"{self.path}: message row {rid}: {why}; skipped")
+                    self.owner.warn(f"{self.path}: message row {rid}: topic id {tid!r} is not in its topics table; "
+                                    "skipped")
                 return
+            if type(t) is not int or t < 0:
+                stamp = self._stamp(rid, tid, header_stamp)
+                if isinstance(stamp, str):  # no message to keep
+                    bad += 1
+                    if bad <= 5:
+                        self.owner.warn(f"{self.path}: message row {rid}: timestamp {t!r} is not a time and {stamp}; "
+                                        "skipped")
+                    return
+                if stamp is not None:
+                    retime(rid, tid, t, f"its header stamp {stamp}")
+                elif prev is not None:
+                    retime(rid, tid, t, f"the previous row's time {prev} (it has no header stamp)")
+                    stamp = prev
+                else:
+                    waiting.append((len(ts), rid, tid, t))
+                t = stamp
+            if t is not None:
+                for at, wid, wtid, wt in waiting:
+                    ts[at] = t
+                    retime(wid, wtid, wt, f"the next row's time {t} (it has no header stamp, no row before it a time)")
+                waiting.clear()
+                prev = t
             ids.append(rid)
             tids.append(tid)
-            ts.append(t)
+            ts.append(0 if t is None else t)
 
         while True:
             try:
@@ -194,15 +234,29 @@ class _Db3:
                     break
                 add(*nxt)
                 last = nxt[0]
+        for _at, wid, wtid, wt in waiting:  # no row of the file has a time
+            retime(wid, wtid, wt, "time 0 (it has no header stamp, no row of the file a time)")
         if bad:
             rep.bad_messages += bad
             if bad > 5:
-                self.owner.warn(f"{self.path}: {bad} message rows in all had no valid timestamp or topic; skipped")
+                self.owner.warn(f"{self.path}: {bad} message rows in all had no valid topic or no message; skipped")
+        if retimed > 5:
+            self.owner.warn(f"{self.path}: {retimed} message rows in all had no valid timestamp; their messages are "
+                            "kept at their header stamps (else a neighbouring row's time)")
         a_ids = np.asarray(ids, dtype=np.int64)
         a_ts = np.asarray(ts, dtype=np.int64)
         order = np.lexsort((a_ids, a_ts))
         self._rows = (a_ids[order], np.asarray(tids, dtype=np.int64)[order], a_ts[order])
         return self._rows
+
+    def _stamp(self, rid: int, tid: int, header_stamp: Callable[[int, bytes], int | None] | None) -> int | str | None:
+        """The header stamp (ns, > 0) of row ``rid``'s message, None when it has none, or why its
+        message cannot be had."""
+        data = self.data(rid)
+        if isinstance(data, str):
+            return data
+        stamp = None if header_stamp is None else header_stamp(tid, data)
+        return stamp if stamp is not None and 0 < stamp < (1 << 63) else None
 
     def _probe(self, last: int) -> tuple[Any, ...] | None:
         """The next row after ``last`` that sqlite can read: ids one by one, then ever larger jumps."""
@@ -289,6 +343,7 @@ class Ros2BagLog(LogReader):
         super().__init__(path)
         self._mcaps: list[LogReader] = []
         self._key: Any = None
+        self._decoders: dict[int, Any] = {}  # channel id -> deserializer (header stamps of rows without a time)
         key = file_key("ros2bag", self.path)
         try:
             self._l, new = learned(key, self._learn)
@@ -338,8 +393,8 @@ class Ros2BagLog(LogReader):
             if not lrn.dbs and not self._mcaps:
                 raise LogReadError(f"{d}: ROS 2 bag has no readable storage file"
                                    + (f" ({'; '.join(failed)})" if failed else " (no .db3 or .mcap file)"))
-            for db in lrn.dbs:
-                db.rows()  # every row's place, once (its warnings go into this report)
+            for src, db in enumerate(lrn.dbs):  # every row's place, once (its warnings go into this report)
+                db.rows(functools.partial(self._header_stamp, src))
             self._check_metadata(meta, why, files)
         except BaseException:
             lrn.close()
@@ -422,6 +477,25 @@ class Ros2BagLog(LogReader):
                                                                text.encode()), meta)
 
             self._channel_id(src, tid, name, typ, make)
+
+    def _header_stamp(self, src: int, tid: int, data: bytes) -> int | None:
+        """The header stamp of a message of the ``src``-th ``.db3``'s topic ``tid``, decoded as the
+        frame stream decodes it (:func:`memlog.io.camera.header_stamp`); None when it does not
+        decode or has no stamp."""
+        from memlog.io.camera import header_stamp
+        from memlog.io.decoders import make_deserializer
+
+        ch = self._chans[self._gid[(src, tid)]]
+        if ch.id not in self._decoders:
+            try:
+                self._decoders[ch.id] = make_deserializer(ch)
+            except Exception:  # noqa: BLE001 - no definition to decode by: no stamp
+                self._decoders[ch.id] = None
+        dec = self._decoders[ch.id]
+        try:
+            return None if dec is None else header_stamp(dec(data))
+        except Exception:  # noqa: BLE001 - a message that does not decode has no stamp to offer
+            return None
 
     def _add_mcap(self, sub: LogReader) -> None:
         src = -1 - len(self._mcaps)
