@@ -25,7 +25,8 @@ The schema metadata records what made the descriptors (``memlog.kind``, ``memlog
 and ``memlog.extra``: a JSON object of whatever the caller adds (source log, thresholds ...).
 Whitened descriptors add ``memlog.whitening_sha256`` (the transform's sha256) and, for a map,
 ``memlog.whitening``: the transform itself (JSON, arrays base64; checked against its sha256 on
-reading, see :mod:`memlog.descriptors.whitening`).
+reading, see :mod:`memlog.descriptors.whitening`). A map's table also records the map it
+belongs to, ``memlog.map_sha256`` and ``memlog.map_file`` (:mod:`memlog.outputs.map_artefact`).
 Files are written atomically (temporary file in the same directory, then ``os.replace``).
 """
 
@@ -35,7 +36,7 @@ import json
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import numpy.typing as npt
@@ -53,7 +54,8 @@ from memlog.io.identity import same_identity
 from memlog.progress import info
 from memlog.selection.segment import SEGMENT_DEFAULTS, recorded_still_distance
 
-__all__ = ["write_descriptors", "read_descriptors", "read_cached", "stored_dtype", "DTYPES"]
+__all__ = ["write_descriptors", "read_descriptors", "read_cached", "stored_dtype", "DTYPES", "descriptor_arrow",
+           "write_arrow"]
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -105,14 +107,9 @@ def _descriptor_column(desc: F32, dtype: str) -> pa.FixedSizeListArray:
     return pa.FixedSizeListArray.from_arrays(flat, type=pa.list_(pa.field("element", DTYPES[dtype], nullable=False), dim))
 
 
-def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable, *, dtype: str = "float32") -> Path:
-    """Write ``table`` to the Parquet file ``path`` atomically; return the path.
-
-    ``dtype`` is the storage type of the descriptors: ``"float32"`` (exact) or ``"float16"``
-    (half the size; recorded in the metadata, read back to float32; DescriptorError when a
-    value is beyond float16's range).
-    """
-    n, dim = table.descriptors.shape
+def descriptor_arrow(table: DescriptorTable, *, dtype: str = "float32") -> pa.Table:
+    """``table`` as the Arrow table :func:`write_descriptors` stores, schema metadata included
+    (``dtype`` as there)."""
     fields: list[pa.Field] = []
     arrays: list[pa.Array] = []
 
@@ -134,13 +131,31 @@ def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable, *, d
         add("moving_index", pa.array(table.moving_index, type=pa.int64()), nullable=False)
     schema_meta = _meta_to_schema(table.meta, table.extra, table.memlog_version or __version__, table.whitening)
     schema_meta[b"memlog.dtype"] = dtype.encode()
-    pa_table = pa.Table.from_arrays(arrays, schema=pa.schema(fields, metadata=schema_meta))
-    item = np.dtype(dtype).itemsize
+    return pa.Table.from_arrays(arrays, schema=pa.schema(fields, metadata=schema_meta))
+
+
+def write_arrow(where: str | os.PathLike[str] | BinaryIO, arrow: pa.Table) -> None:
+    """Write a table made by :func:`descriptor_arrow` as Parquet to ``where`` (a path or an open
+    binary file, which stays open), with the storage this module describes. Not atomic: give it
+    a temporary file (:func:`write_descriptors` does)."""
+    typ = arrow.schema.field("descriptor").type
+    row_bytes = max(1, typ.list_size * typ.value_type.bit_width // 8)
+    pq.write_table(arrow, where, compression="zstd", use_dictionary=["topic"],
+                   row_group_size=max(1, ROW_GROUP_BYTES // row_bytes))
+
+
+def write_descriptors(path: str | os.PathLike[str], table: DescriptorTable, *, dtype: str = "float32") -> Path:
+    """Write ``table`` to the Parquet file ``path`` atomically; return the path.
+
+    ``dtype`` is the storage type of the descriptors: ``"float32"`` (exact) or ``"float16"``
+    (half the size; recorded in the metadata, read back to float32; DescriptorError when a
+    value is beyond float16's range).
+    """
+    arrow = descriptor_arrow(table, dtype=dtype)
     target = Path(path)
     try:
         with atomic_output(target) as tmp:
-            pq.write_table(pa_table, tmp, compression="zstd", use_dictionary=["topic"],
-                           row_group_size=max(1, ROW_GROUP_BYTES // max(1, dim * item)))
+            write_arrow(tmp, arrow)
     except OSError as exc:
         raise DescriptorError(f"could not write {target}: {exc}") from None
     return target

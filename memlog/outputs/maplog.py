@@ -5,7 +5,8 @@ Compressed frames are copied byte for byte; raw frames are encoded to JPEG/PNG a
 (``memlog.FrameScores``). Both are in the input's encoding family (:mod:`memlog.outputs.channels`:
 ``sensor_msgs/CompressedImage`` + ``memlog_msgs/FrameScores`` in ROS 2 CDR or ROS 1, Foxglove JSON
 or protobuf). Topics the user keeps whole (GPS, odometry) are copied; metadata ``memlog_map``
-records the run.
+records the run, and ``memlog_map_descriptors`` the map's descriptor table
+(:mod:`memlog.outputs.map_artefact`: the map and its descriptors are written as one artefact).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from memlog.io.atomic import AtomicFile
 from memlog.io.camera import camera_kind
 from memlog.io.frame import Frame
 from memlog.io.mcap import McapLogWriter
@@ -81,8 +83,19 @@ class MapLogWriter:
         """A message of a topic kept whole."""
         self.w.write_raw(raw)
 
-    def close(self, metadata: Mapping[str, str]) -> Path:
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """Another metadata record (the link to the map's descriptors,
+        :mod:`memlog.outputs.map_artefact`)."""
+        self.w.add_metadata(name, data)
+
+    def finish(self, metadata: Mapping[str, str]) -> AtomicFile:
+        """Add the ``memlog_map`` metadata and finish the file under its temporary name without
+        moving it into place (see :meth:`McapLogWriter.finish`)."""
         self.w.add_metadata("memlog_map", metadata)
+        return self.w.finish()
+
+    def close(self, metadata: Mapping[str, str]) -> Path:
+        self.finish(metadata)
         return self.w.close()
 
     def abort(self) -> None:

@@ -10,6 +10,11 @@ and writes, in one more pass over the log,
 * ``MAP.parquet`` (:mod:`memlog.outputs.descriptor_table`): one reference descriptor per kept
   frame, described in batches while the map is written.
 
+The two are one artefact (:mod:`memlog.outputs.map_artefact`): each records the other's sha256,
+and they are put in place together when both are complete, so a failed run leaves the earlier
+pair (or neither file), never a new map beside an old Parquet;
+:func:`~memlog.outputs.map_artefact.check_map_pair` checks that a Parquet belongs to a map.
+
 The :class:`MapResult` carries the selections, so ``evaluate`` measures exactly the map written.
 """
 
@@ -41,7 +46,7 @@ from memlog.io.records import ReadReport
 from memlog.models.runtime import choose_providers
 from memlog.outputs.annotated import read_scores, run_config, run_input_identity, scores_message
 from memlog.outputs.channels import family_of
-from memlog.outputs.descriptor_table import write_descriptors
+from memlog.outputs.map_artefact import write_map
 from memlog.outputs.maplog import MapLogWriter
 from memlog.progress import info, progress
 from memlog.scoring.config import ScoreConfig
@@ -529,7 +534,16 @@ def make_map(
                     result.whitening = {"skipped": f"fewer than {MIN_SAMPLES} frames described; not whitened"}
                     info(f"{reader.path}: the map is not whitened: whitening is fitted on at least "
                          f"{MIN_SAMPLES} frames of the drive")
-            w.close({
+            table = None
+            if described is not None and describer is not None and dpath is not None and choice is not None:
+                frames, desc, white = described
+                extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
+                         "keep_fraction": sel_cfg.keep_fraction, "descriptor_choice": choice.to_dict()}
+                moving = _moving(frames, tables, sel_cfg.still_distance)
+                table = build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra,
+                                    whitening=white, moving=moving, still_distance=sel_cfg.still_distance)
+            # the map and its descriptors as one artefact: each records the other, both in place or neither
+            write_map(w, {
                 "descriptor": json.dumps(choice.to_dict() if choice else None, sort_keys=True),
                 "whitening": json.dumps(result.whitening, sort_keys=True),
                 "memlog_version": __version__, "input": str(reader.path), "config": cfg.score.to_json(),
@@ -540,17 +554,8 @@ def make_map(
                 "camera_bytes_kept_before_reencoding": str(bytes_kept),
                 "selection": json.dumps({t: s.to_dict() for t, s in selections.items()}),
                 "resmem_crops_run": json.dumps(crops[0]), "resmem_crops_full_scoring": json.dumps(crops[1]),
-            })
+            }, dpath if dpath is not None else cfg.descriptors_path, table, dtype=cfg.descriptor_dtype)
+            result.descriptors = dpath if table is not None else None
         result.bytes_out = os.path.getsize(output)
-        if described is not None and describer is not None and dpath is not None and choice is not None:
-            frames, desc, white = described
-            extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
-                     "keep_fraction": sel_cfg.keep_fraction, "descriptor_choice": choice.to_dict()}
-            moving = _moving(frames, tables, sel_cfg.still_distance)
-            write_descriptors(dpath, build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra,
-                                                 whitening=white, moving=moving,
-                                                 still_distance=sel_cfg.still_distance),
-                              dtype=cfg.descriptor_dtype)
-            result.descriptors = dpath
     result.seconds = time.perf_counter() - t0
     return result

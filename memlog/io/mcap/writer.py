@@ -60,6 +60,7 @@ class McapLogWriter:
         self._in_map: dict[tuple[Any, ...], int] = {}
         self.messages_written = 0
         self._closed = False
+        self._finished = False
 
     # -- registration -----------------------------------------------------------
     def add_schema(self, name: str, encoding: str, data: bytes) -> int:
@@ -120,13 +121,28 @@ class McapLogWriter:
         self._writer.add_attachment(create_time=create_time, log_time=log_time, name=name, media_type=media_type, data=data)
 
     # -- finish -------------------------------------------------------------------
+    def finish(self) -> AtomicFile:
+        """Finish the file (summary, indexes) under its temporary name (``.tmp`` of the returned
+        file, flushed) without moving it into place: the caller commits it (or aborts it), for
+        example together with a companion file (:func:`~memlog.io.atomic.commit_together`)."""
+        if self._closed:
+            raise LogWriteError(f"{self.path}: the writer is already closed")
+        if not self._finished:
+            try:
+                self._writer.finish()  # type: ignore[no-untyped-call]
+                self._fh.flush()
+            except BaseException:
+                self.abort()
+                raise
+            self._finished = True
+        return self._file
+
     def close(self) -> Path:
         """Finish the file (summary, indexes) and move it to its final name."""
         if self._closed:
             return self.path
         try:
-            self._writer.finish()  # type: ignore[no-untyped-call]
-            self._file.commit()
+            self.finish().commit()
         except BaseException:
             self.abort()
             raise
