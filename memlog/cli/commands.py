@@ -35,6 +35,7 @@ from memlog.cli.flags import (
     speed_range,
 )
 from memlog.configfile import build
+from memlog.descriptors.sequence import SequenceConfig
 from memlog.errors import ConfigError
 from memlog.progress import info
 from memlog.selection.config import DEFAULT_CANDIDATES
@@ -438,6 +439,9 @@ def add_localize(sub: Any) -> None:
     add_window_flags(p, "localize")
     add_max_pixels(p)
     p.add_argument("--annotate", metavar="OUT.mcap", help="also write the query log with a T/memlog/match channel")
+    p.add_argument("--map", dest="map_log", metavar="MAP.mcap",
+                   help="the map log the descriptors were written with: checked (both files record each other's "
+                        "sha256) before any work, an error when the Parquet does not belong to it")
     p.add_argument("--query-descriptors", metavar="PATH",
                    help="cache query descriptors here (reused only when made from the same query log and window)")
     p.add_argument("--search", choices=["auto", "exact", "ivf"], default="auto",
@@ -453,6 +457,9 @@ def add_localize(sub: Any) -> None:
     p.set_defaults(func=cmd_localize)
 
 
+SEQUENCE_DEFAULTS = SequenceConfig()
+
+
 def add_sequence_flags(p: Any) -> None:
     """How a query drive is matched as sequences (``localize``, ``evaluate``)."""
     g = p.add_argument_group("sequences (on by default: the query is matched as a drive)")
@@ -466,7 +473,11 @@ def add_sequence_flags(p: Any) -> None:
                    help="relative speeds searched, map coordinate per query coordinate (default 0:3; positions: "
                         "0.8:1.25)")
     g.add_argument("--sequence-k", type=positive_int, metavar="K",
-                   help="candidates per query frame from the single-frame search that vote for places (default 3)")
+                   help="candidates per query frame from the single-frame search that vote for places (default "
+                        f"{SEQUENCE_DEFAULTS.candidates})")
+    g.add_argument("--speed-prior", type=nonneg_float, metavar="P",
+                   help="a path's score loses P per doubling or halving of its speed against the map's "
+                        f"(default {SEQUENCE_DEFAULTS.speed_prior:g}; 0: every speed of --speeds alike)")
     g.add_argument("--coordinate", choices=["auto", "frames", "time", "positions"],
                    help="what sequences follow: frame indices, stamps, or distance along both logs' positions "
                         "(default auto: positions when both logs have them, else frames)")
@@ -483,6 +494,7 @@ def add_sequence_flags(p: Any) -> None:
 
 
 _SEQUENCE_FLAGS = {"causal": "--causal", "speeds": "--speeds", "sequence_k": "--sequence-k",
+                   "speed_prior": "--speed-prior",
                    "coordinate": "--coordinate", "sequence_path": "--sequence-path", "max_gap": "--max-gap",
                    "keep_stops": "--keep-stops"}
 
@@ -498,7 +510,8 @@ def sequence_config(args: argparse.Namespace) -> Any:
                           "frames")
     kw: dict[str, Any] = {}
     for key, dest in (("length", "sequence"), ("speeds", "speeds"), ("candidates", "sequence_k"),
-                      ("coordinate", "coordinate"), ("path", "sequence_path"), ("max_gap_s", "max_gap")):
+                      ("coordinate", "coordinate"), ("path", "sequence_path"), ("max_gap_s", "max_gap"),
+                      ("speed_prior", "speed_prior")):
         v = getattr(args, dest, None)
         if v is not None:
             kw[key] = v
@@ -527,7 +540,7 @@ def cmd_localize(args: argparse.Namespace) -> int:
     cfg = LocalizeConfig(k=args.k, window=frame_window(args, args.query), search=search,
                          time_search=args.time_search, sequence=seq)
     res = localize(args.map, args.query, args.output, cfg, annotate=args.annotate,
-                   query_descriptors=args.query_descriptors)
+                   query_descriptors=args.query_descriptors, map_log=args.map_log)
     t = res.timing_map.seconds_per_query
     sq = res.sequence
     how = (f"{sq['mode']} sequences of {sq['length']} frames, {sq['coordinate']}, speeds "

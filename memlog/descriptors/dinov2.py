@@ -120,7 +120,10 @@ class DinoV2Describer(Describer):
         device: str = "auto",
         layer: int | None = None,
         scales: Sequence[float] = (1.0,),
+        input_size: int = INPUT_SIZE,
     ) -> None:
+        if input_size != INPUT_SIZE:  # recorded in ``params``; the ONNX graph takes this size only
+            raise DescriptorError(f"input_size must be {INPUT_SIZE} (the DINOv2 graph's input), not {input_size!r}")
         if pooling not in POOLINGS:
             raise DescriptorError(f"pooling must be one of {', '.join(POOLINGS)}, not {pooling!r}")
         if layer is not None and layer not in MID_LAYERS:

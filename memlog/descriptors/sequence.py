@@ -119,7 +119,7 @@ BoolArray = npt.NDArray[np.bool_]
 
 COORDINATES = ("auto", "frames", "time", "positions")
 PATHS = ("constant", "dp")
-DEFAULT_SPEEDS = (0.0, 3.0)  # frames and time: from standing still to three times the map's speed
+DEFAULT_SPEEDS = (1 / 3, 3.0)  # frames and time: a third to three times the map's speed (stops are left out)
 POSITION_SPEEDS = (0.8, 1.25)  # positions: metres against metres; the range allows for odometry scale
 STAT_SAMPLE = 256  # map frames the contrast normalisation's statistics are taken from
 MAX_SPEEDS = 128  # at most this many speeds are searched (speed_step is raised to fit)
@@ -127,11 +127,23 @@ EXACT_PLACES = 3  # the best-voted places that compete for the best match (more:
 TOP_VOTES = 64  # best-voted places per query looked at by the non-maximum suppression
 CENTRE_STEPS = 2  # centres are tried every half reference frame (a map sparser than the query: between its frames)
 RESCORE_SPEEDS = 3  # exact scores are taken at the voted speed and this many steps either side
-PAIRING = "mutual"  # "mutual": map frames along the path meet their nearest query frames; "all": every frame
-SCORE_NORM = "sqrt"  # "sqrt": sum of z over sqrt(pairs), N(0, 1) without a match; "mean": the mean z
+PAIRINGS = ("mutual", "all")  # mutual: map frames along the path meet their nearest query frames; all: every frame
+SCORE_NORMS = ("sqrt", "mean")  # sqrt: sum of z over sqrt(pairs), N(0, 1) without a match; mean: the mean z
+VOTE_ELEMS = 1 << 21  # votes of one block of centres (memory bound whatever the window, candidates and speeds)
+SCORE_ELEMS = 1 << 20  # elements of one [B, P, D, S, W] block of exact scores (memory bound whatever the sparsity)
 PAIR_ELEMS = 1 << 21  # float32 elements per chunk of pair products (8 MiB)
 GAP_FACTOR = 10.0  # default run boundary: a stamp gap above this many median frame intervals
 MAX_LENGTH_SCALE = 2.0  # scale_length: a window grows at most 2x on a sparse map
+#: why a query row was matched frame by frame (``SequenceMatch.fallback``; "" for sequence rows)
+FALLBACK_REASONS = {
+    "single": "single frames asked for (sequence length 0)",
+    "small-map": "the map spans fewer reference frames than the window",
+    "standing": "the query stood still: fewer moving frames in its run than the window needs",
+    "short-run": "its run of ordered frames is shorter than the window (a single image, or frames whose stamps "
+                 "do not increase)",
+    "causal-start": "fewer frames of its run before it than the causal window needs",
+    "no-path": "no place stood out of its window's single-frame candidates",
+}
 
 
 @dataclass(frozen=True)
@@ -147,7 +159,8 @@ class SequenceConfig:
     into runs (None: :data:`GAP_FACTOR` times the median frame interval). ``exclude``:
     half-width, in reference frames, of the window around the best place inside which no
     second-best place is taken (the margin's "different place"). ``normalize``: contrast
-    normalisation of the similarities. ``block``: query frames per block of votes (speed and
+    normalisation of the similarities. ``block``: query frames per block of votes, at most (fewer when a block's votes would pass
+    :data:`VOTE_ELEMS`; speed and
     memory only; never the result). ``scale_length``: on a sparse map (the kept frames' median
     spacing ``s`` reference frames, a half map ``s = 2``) the window is ``length * s`` frames
     (at most :data:`MAX_LENGTH_SCALE` times), so a sequence meets as many map frames as on the
@@ -155,14 +168,18 @@ class SequenceConfig:
     2nd frame 0.655 -> 0.739 with +-20, the other half 0.653 -> 0.669, every 4th frame 0.410 ->
     0.430 with +-20; windows of 4x were worse on drives that change speed; ``info["length_used"]``).
     ``stops``: in the ``frames`` coordinate, drives run along their moving index and a standing
-    query frame takes its stop's match (the module doc's "Stops").
+    query frame takes its stop's match (the module doc's "Stops"). ``speed_prior``: a path's
+    score loses this much per doubling (or halving) of its speed against 1, ``|log2 v|`` (0: every
+    speed in the range alike). Experimental settings (benchmarks compare them; the defaults are
+    what was measured best): ``pairing`` (``mutual`` | ``all``), ``score_norm`` (``sqrt`` |
+    ``mean``) and ``places`` (the best-voted places scored exactly).
     """
 
     length: int = 10
     causal: bool = False
     speeds: tuple[float, float] | None = None
     speed_step: float | None = None
-    candidates: int = 3
+    candidates: int = 10
     coordinate: str = "auto"
     path: str = "constant"
     max_gap_s: float | None = None
@@ -171,9 +188,16 @@ class SequenceConfig:
     block: int = 128
     scale_length: bool = True
     stops: bool = True
+    speed_prior: float = 1.0
+    pairing: str = "mutual"
+    score_norm: str = "sqrt"
+    places: int = EXACT_PLACES
 
     def __post_init__(self) -> None:
-        check_ints(self, {"length": 0, "candidates": 1, "block": 1})
+        check_ints(self, {"length": 0, "candidates": 1, "block": 1, "places": 1})
+        if self.pairing not in PAIRINGS or self.score_norm not in SCORE_NORMS:
+            raise ConfigError(f"pairing must be one of {', '.join(PAIRINGS)} and score_norm one of "
+                              f"{', '.join(SCORE_NORMS)}, got {self.pairing!r} and {self.score_norm!r}")
         if not isinstance(self.causal, bool) or not isinstance(self.normalize, bool):
             raise ConfigError("causal and normalize must be true or false")
         if self.coordinate not in COORDINATES:
@@ -188,6 +212,9 @@ class SequenceConfig:
             if sp[0] < 0 or sp[1] < sp[0]:
                 raise ConfigError(f"speeds must satisfy 0 <= min <= max, got {sp[0]:g}:{sp[1]:g}")
             object.__setattr__(self, "speeds", (float(sp[0]), float(sp[1])))
+        if isinstance(self.speed_prior, bool) or not isinstance(self.speed_prior, (int, float)) or not (
+                math.isfinite(self.speed_prior) and self.speed_prior >= 0):
+            raise ConfigError(f"speed_prior must be a number >= 0, got {self.speed_prior!r}")
         for name in ("speed_step", "max_gap_s"):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
@@ -229,10 +256,16 @@ class SequenceMatch:
     ``scores`` ``[Q, k]``: the sequence score (mean contrast-normalised similarity along the
     path), or the similarity for single-frame queries; ``similarities`` ``[Q, k]``: the cosine
     similarity of the query frame itself to each matched frame. ``margin`` ``[Q]``: best minus
-    second-best score (NaN without a second). ``speed`` ``[Q]``: relative speed of the best path
+    second-best *place*'s score (NaN without a second), in the score's unit for every row: a
+    single frame is a path of one pair, its score the contrast-normalised similarity ``z`` and its
+    second place the best candidate outside ``exclude`` of the best. ``ratio`` ``[Q]``: the query
+    frame's descriptor distance to the best match over its distance to the second-best place
+    (Lowe's ratio; lower is more distinct). ``speed`` ``[Q]``: relative speed of the best path
     (NaN for single frames). ``window`` ``[Q]``: frames the score was taken over (1 = single
-    frame). ``sequence`` ``[Q]``: matched as a sequence. ``info``: the settings used and the
-    fallback, if any.
+    frame). ``sequence`` ``[Q]``: matched as a sequence. ``fallback`` ``[Q]``: why a row was
+    matched frame by frame ("" for sequence rows; :data:`FALLBACK_REASONS`). ``info``: the
+    settings used and what happened (``length_used``, ``sequence_queries``, ``single_queries``,
+    ``fallback``: a summary, ``fallback_reasons``: rows per reason).
     """
 
     indices: I64
@@ -242,16 +275,24 @@ class SequenceMatch:
     speed: F64
     window: I64
     sequence: BoolArray
+    ratio: F64 = field(default_factory=lambda: np.zeros(0))
+    fallback: npt.NDArray[np.str_] = field(default_factory=lambda: np.zeros(0, dtype=str))
     info: dict[str, Any] = field(default_factory=dict)
 
     @property
     def confidence(self) -> F64:
-        """Per-query confidence: the margin for sequence-matched queries, the best similarity
-        for single-frame ones (as single-frame localization reports it); -inf without a match."""
+        """Per-query confidence, one scale for every row: the margin of the best place over the
+        second-best in score units (0 without a second place); -inf without a match."""
         found = self.indices[:, 0] >= 0
-        seq = np.where(np.isnan(self.margin), 0.0, self.margin)
-        out: F64 = np.where(found, np.where(self.sequence, seq, self.scores[:, 0]), -np.inf).astype(np.float64)
+        m = np.where(np.isnan(self.margin), 0.0, self.margin)
+        out: F64 = np.where(found, m, -np.inf).astype(np.float64)
         return out
+
+    def take(self, rows: npt.ArrayLike) -> SequenceMatch:
+        """The result of query ``rows`` (in that order), same info."""
+        r = np.asarray(rows, dtype=np.int64)
+        return SequenceMatch(self.indices[r], self.scores[r], self.similarities[r], self.margin[r], self.speed[r],
+                             self.window[r], self.sequence[r], self.ratio[r], self.fallback[r], self.info)
 
 
 # -- coordinates and runs of descriptor tables -------------------------------------------------------
@@ -278,20 +319,28 @@ def _topic_groups(table: DescriptorTable) -> list[I64]:
 
 
 def uses_stops(config: SequenceConfig, coordinate: str) -> bool:
-    """Stops are left out of the match (``config.stops`` and the ``frames`` coordinate)."""
-    return config.enabled and config.stops and coordinate == "frames"
+    """Stops are left out of the match (``config.stops`` and the ``frames`` or ``time`` coordinate;
+    positions add nothing while standing anyway)."""
+    return config.enabled and config.stops and coordinate in ("frames", "time")
 
 
 def drive_coordinates(table: DescriptorTable, coordinate: str, stops: bool = False) -> F64:
     """The along-drive coordinate of every row: ``frames`` (frame index; with ``stops`` the
-    moving index where the table has one), ``time`` (stamp, s) or ``positions`` (distance
-    travelled along the topic's frames in frame order, m)."""
+    moving index where the table has one), ``time`` (stamp, s; with ``stops`` the time spent
+    standing left out) or ``positions`` (distance travelled along the topic's frames in frame
+    order, m)."""
     if coordinate == "frames":
         if stops and table.moving_index is not None:
             return table.moving_index.astype(np.float64)
         return table.frame_index.astype(np.float64)
     if coordinate == "time":
-        return _stamps_s(table)
+        t = _stamps_s(table)
+        if stops and table.moving_index is not None:  # the moving time: time spent standing left out
+            for rows in _topic_groups(table):
+                dt = np.diff(t[rows])
+                still = table.moving_index[rows][1:] == table.moving_index[rows][:-1]
+                t[rows] = t[rows][0] + np.r_[0.0, np.cumsum(np.where(still, 0.0, dt))]
+        return t
     if coordinate != "positions":
         raise DescriptorError(f"unknown coordinate {coordinate!r}")
     if not has_positions(table):
@@ -339,6 +388,31 @@ def reference_unit(table: DescriptorTable, coord: npt.ArrayLike) -> float:
     return float(np.median(r)) if r.size else 1.0
 
 
+def frame_interval(table: DescriptorTable) -> float | None:
+    """The drive's time per frame-index step (s): the median over consecutive rows of a topic of
+    stamp step over frame-index step (a map's rows keep their frame index in the drive, so this is
+    the drive's frame interval); None without increasing stamps."""
+    stamps = _stamps_s(table)
+    ratios = []
+    for rows in _topic_groups(table):
+        df = np.diff(table.frame_index[rows]).astype(np.float64)
+        dt = np.diff(stamps[rows])
+        ok = (df > 0) & (dt > 0)
+        ratios.append(dt[ok] / df[ok])
+    r = np.concatenate(ratios) if ratios else np.zeros(0)
+    return float(np.median(r)) if r.size else None
+
+
+def drive_pace(query: DescriptorTable, reference: DescriptorTable) -> float:
+    """The speed, in map frames per query frame, of a query driven at the map drive's pace: the
+    ratio of their frame intervals (1 when either is unknown or they are within 5 %)."""
+    fq, fr = frame_interval(query), frame_interval(reference)
+    if not fq or not fr:
+        return 1.0
+    ratio = fq / fr
+    return 1.0 if abs(ratio - 1.0) <= 0.05 else ratio
+
+
 def resolve_coordinate(asked: str, query: DescriptorTable, reference: DescriptorTable) -> tuple[str, str | None]:
     """The coordinate to match in, and a note when ``auto`` could not use positions.
     ``positions`` asked for without positions in both drives is a :class:`DescriptorError`."""
@@ -356,20 +430,22 @@ def resolve_coordinate(asked: str, query: DescriptorTable, reference: Descriptor
 
 def drive_runs(table: DescriptorTable, max_gap_s: float | None = None) -> tuple[I64, float | None]:
     """Run label of every row and the gap limit used: a run is a stretch of one topic's frames
-    (in table order) whose stamps increase, each by at most ``max_gap_s`` (None:
-    :data:`GAP_FACTOR` times the topic's median frame interval). Frames whose stamp does not
-    increase (unordered frames, repeated stamps) start a new run."""
+    (in table order) whose stamps and frame indices increase, the stamps by at most ``max_gap_s``
+    per frame-index step (None: :data:`GAP_FACTOR` times the topic's median frame interval). A
+    query log (every frame, or every n-th) and a map (the kept frames of a drive, with their frame
+    indices in it) are cut alike: at a recording gap, and where frames are out of order."""
     labels = np.zeros(len(table), dtype=np.int64)
     stamps = _stamps_s(table)
     run = 0
     limit_used: float | None = max_gap_s
     for rows in _topic_groups(table):
-        dt = np.diff(stamps[rows])
-        pos = dt[dt > 0]
+        df = np.diff(table.frame_index[rows])
+        dt = np.diff(stamps[rows]) / np.maximum(df, 1)
+        pos = dt[(dt > 0) & (df > 0)]
         limit = max_gap_s if max_gap_s is not None else (GAP_FACTOR * float(np.median(pos)) if pos.size else 0.0)
         if max_gap_s is None and pos.size:
             limit_used = limit if limit_used is None else max(limit_used, limit)
-        cut = np.r_[True, (dt <= 0) | (dt > limit)]
+        cut = np.r_[True, (dt <= 0) | (df <= 0) | (dt > limit)]
         labels[rows] = run + np.cumsum(cut) - 1
         run += int(cut.sum())
     return labels, limit_used
@@ -426,6 +502,17 @@ class _Problem:
     speeds: F64
     vmin: float
     vmax: float
+    cfg: SequenceConfig
+    pace: float  # the speed of a drive at the map's own pace (the speed prior's centre)
+
+    def prior(self, v: F64) -> F64:
+        """What the speed prior takes off a path's score at speeds ``v``: ``speed_prior`` per
+        doubling or halving against :attr:`pace`."""
+        if self.cfg.speed_prior <= 0:
+            return np.zeros(np.shape(v))
+        with np.errstate(divide="ignore"):
+            out: F64 = self.cfg.speed_prior * np.abs(np.log2(np.asarray(v, dtype=np.float64) / self.pace))
+        return out
 
 
 def _run_bounds(labels: I64, qc: F64) -> tuple[I64, I64]:
@@ -519,7 +606,8 @@ def _votes(p: _Problem, centres: I64, offs: I64, cand: I64, gain: F64, n_places:
     on_map = _on_map(p, x)  # a centre beyond the map's ends has no frame to vote for (never clipped onto one)
     key = (bi[rr][:, None].astype(np.int64) * m + _nearest(p.rc, x)) * nv + vs[None, :]
     key = key[on_map]
-    val = np.broadcast_to(g[rr, cc][:, None], x.shape)[on_map]
+    wv = np.exp2(-p.prior(p.speeds))  # the speed prior weighs each speed's vote as it weighs its score
+    val = (g[rr, cc][:, None] * wv[None, :])[on_map]
     if not len(key):
         return places, speeds
     order = np.argsort(key, kind="stable")
@@ -595,34 +683,47 @@ def _closest_to_their_frame(p: _Problem, pred: F64, rk: I64, inside: BoolArray) 
 def _score_constant(p: _Problem, centres: I64, offs: I64, places: I64, vbest: I64) -> tuple[F64, F64, F64]:
     """Exact constant-speed scores ``[B, P]`` of the voted places, with the best centre
     coordinate and speed of each: the centre is tried at :func:`_centre_offsets` around the map
-    frame, the speed at the voted one and :data:`RESCORE_SPEEDS` steps either side."""
+    frame, the speed at the voted one and :data:`RESCORE_SPEEDS` steps either side. The centre
+    offsets are taken in blocks of at most :data:`SCORE_ELEMS` path elements, so memory does not
+    grow with the map's sparsity (a sparse map has many offsets)."""
     t, valid, d = _windows(p, centres, offs)
     nv = len(p.speeds)
     sidx = np.clip(vbest[:, :, None] + np.arange(-RESCORE_SPEEDS, RESCORE_SPEEDS + 1)[None, None, :], 0, nv - 1)
     ok = places >= 0
-    dx = _centre_offsets(p)
-    x = p.rc[np.maximum(places, 0)][:, :, None] + dx[None, None, :]  # [B, P, D]
     v = p.speeds[sidx]  # [B, P, S]
-    pred = x[:, :, :, None, None] + v[:, :, None, :, None] * d[:, None, None, None, :]  # [B, P, D, S, W]
-    rk = _nearest(p.rc, pred)
-    tq = np.broadcast_to(t[:, None, None, None, :], rk.shape)
-    inside = valid[:, None, None, None, :] & ok[:, :, None, None, None] & _on_map(p, pred)
-    use = inside & _closest_to_their_frame(p, pred, rk, inside) if PAIRING == "mutual" else inside
-    z = np.zeros(rk.shape)
-    z[use] = _z_of_pairs(p, tq[use], rk[use])
-    total = np.zeros(rk.shape[:4])
-    count = np.zeros(rk.shape[:4])
-    for o in range(rk.shape[4]):  # a fixed summation order
-        total += z[..., o]
-        count += use[..., o]
-    total /= np.sqrt(np.maximum(count, 1)) if SCORE_NORM == "sqrt" else np.maximum(count, 1)
-    flat = total.reshape(places.shape[0], places.shape[1], -1)
-    arg = np.argmax(flat, axis=2)  # first best: the lowest centre offset, then the lowest speed
-    score = np.take_along_axis(flat, arg[..., None], axis=2)[..., 0]
-    di, si = np.divmod(arg, sidx.shape[2])
-    centre = np.take_along_axis(x, di[..., None], axis=2)[..., 0]
-    speed = np.take_along_axis(v, si[..., None], axis=2)[..., 0]
-    return np.where(ok, score, -np.inf), centre, speed
+    penalty = p.prior(v)
+    dx_all = _centre_offsets(p)
+    b, n_p, n_s, n_w = places.shape[0], places.shape[1], v.shape[2], d.shape[1]
+    step = max(1, SCORE_ELEMS // max(1, b * n_p * n_s * n_w))
+    best = np.full((b, n_p), -np.inf)
+    centre = np.zeros((b, n_p))
+    speed = np.full((b, n_p), np.nan)
+    for a in range(0, len(dx_all), step):  # in offset order: the first best is the lowest offset, then speed
+        dx = dx_all[a : a + step]
+        x = p.rc[np.maximum(places, 0)][:, :, None] + dx[None, None, :]  # [B, P, D]
+        pred = x[:, :, :, None, None] + v[:, :, None, :, None] * d[:, None, None, None, :]  # [B, P, D, S, W]
+        rk = _nearest(p.rc, pred)
+        tq = np.broadcast_to(t[:, None, None, None, :], rk.shape)
+        inside = valid[:, None, None, None, :] & ok[:, :, None, None, None] & _on_map(p, pred)
+        use = inside & _closest_to_their_frame(p, pred, rk, inside) if p.cfg.pairing == "mutual" else inside
+        z = np.zeros(rk.shape)
+        z[use] = _z_of_pairs(p, tq[use], rk[use])
+        total = np.zeros(rk.shape[:4])
+        count = np.zeros(rk.shape[:4])
+        for o in range(rk.shape[4]):  # a fixed summation order
+            total += z[..., o]
+            count += use[..., o]
+        total /= np.sqrt(np.maximum(count, 1)) if p.cfg.score_norm == "sqrt" else np.maximum(count, 1)
+        total -= penalty[:, :, None, :]
+        flat = total.reshape(b, n_p, -1)
+        arg = np.argmax(flat, axis=2)
+        score = np.take_along_axis(flat, arg[..., None], axis=2)[..., 0]
+        di, si = np.divmod(arg, n_s)
+        better = score > best
+        best = np.where(better, score, best)
+        centre = np.where(better, np.take_along_axis(x, di[..., None], axis=2)[..., 0], centre)
+        speed = np.where(better, np.take_along_axis(v, si[..., None], axis=2)[..., 0], speed)
+    return np.where(ok, best, -np.inf), centre, speed
 
 
 def _dp_steps(d: F64, unit: float, vmin: float, vmax: float) -> tuple[I64, I64]:
@@ -678,14 +779,14 @@ def _score_dp(p: _Problem, i: int, offs: I64, places: I64) -> tuple[F64, F64, F6
 def _place(p: _Problem, i: int, sc: F64, xc: F64, sp: F64, w: int, k: int, indices: I64, scores: F64,
            margin: F64, speed: F64, window: I64, seq: BoolArray) -> None:
     """Write query ``i``'s result from its scored centres (in vote order): the first
-    :data:`EXACT_PLACES` ranked by score, then the others ranked by score (so the best match does
+    ``places`` (:data:`EXACT_PLACES` by default) ranked by score, then the others ranked by score (so the best match does
     not depend on ``k``), each reported as the map frame nearest it; a centre, or its reported
     frame, within ``p.excl`` of a better one's is the same place (left out); the margin is the best
     score minus the next place's."""
     good = np.flatnonzero(np.isfinite(sc))
     if not len(good):
         return
-    late = (good >= EXACT_PLACES).astype(np.int64)
+    late = (good >= p.cfg.places).astype(np.int64)
     order = good[np.lexsort((xc[good], -sc[good], late))]
     kept: list[int] = []
     rows: list[int] = []
@@ -722,6 +823,7 @@ def match_sequences(
     nprobe: int | None = None,
     rerank: int | None = None,
     standing: npt.ArrayLike | None = None,
+    pace: float = 1.0,
 ) -> SequenceMatch:
     """Match the query drive against the reference as sequences (see the module doc).
 
@@ -737,6 +839,9 @@ def match_sequences(
     exact search; ``nprobe``/``rerank`` its settings); ``reference`` is then its database.
     ``standing`` (bool ``[Q]``): query rows whose camera stood still since the previous row of
     their run; they take that stop's first row's result (the first row of a run never stands).
+    ``pace``: the speed of a query driven at the map's own pace (frames: the query's frame interval
+    over the map drive's, so a map recorded at twice the frame rate has pace 2): the default speed
+    range is taken relative to it and the speed prior is centred on it.
     """
     cfg = config or SequenceConfig()
     if k < 1:
@@ -773,8 +878,9 @@ def match_sequences(
             keep = ~stand
             sub = match_sequences(q[keep], qc[keep], reference, reference_coord, config, k=k, ref_mask=ref_mask,
                                   runs=labels[keep], ref_unit=ref_unit, coordinate=coordinate, index=index,
-                                  nprobe=nprobe, rerank=rerank)
-            return _expand(sub, keep, q, db, n_ref, cfg)
+                                  nprobe=nprobe, rerank=rerank, pace=pace)
+            lo, hi = _run_bounds(labels, qc)
+            return _expand(sub, keep, q, db, n_ref, cfg, hi - lo)
     kk = min(k, max(1, n_m))
     info: dict[str, Any] = {**cfg.to_dict(), "coordinate": coordinate, "k": k}
 
@@ -788,13 +894,13 @@ def match_sequences(
         # frames: the window grows with the map's spacing so a sequence gathers as much evidence
         scale = min(MAX_LENGTH_SCALE, max(1.0, spacing / unit)) if unit > 0 else 1.0
         cfg = replace(cfg, length=int(round(cfg.length * scale)))
-        info["length_used"] = cfg.length
+    info["length_used"] = cfg.length
     full_row = order if db.index is None else db.index[order]
     full_row = full_row.astype(np.int64)
     sorted_of_full = np.full(max(n_ref, 1), -1, dtype=np.int64)
     sorted_of_full[full_row] = np.arange(n_m)
 
-    n_cand = max(cfg.candidates + 1, kk) if cfg.enabled else kk  # one more: the floor of the gains
+    n_cand = max(cfg.candidates + 1, kk)  # one more: the floor of the gains (and a second place)
     if n_q and n_m:
         if index is not None:
             ci, cs = index.search(q, n_cand, nprobe, rerank)
@@ -802,14 +908,22 @@ def match_sequences(
             ci, cs = match(q, db, k=n_cand)  # rows of the full reference
     else:
         ci, cs = np.full((n_q, n_cand), -1, np.int64), np.full((n_q, n_cand), -np.inf, np.float32)
+    mu, sd = _stats(q, db, cfg.normalize)
+    with np.errstate(invalid="ignore"):
+        z = np.where(ci >= 0, (cs.astype(np.float64) - mu[:, None]) / sd[:, None], -np.inf)
 
-    # single-frame results (every query has them; sequence queries are overwritten below)
+    # single-frame results (every query has them; sequence queries are overwritten below): a
+    # path of one pair, scored by z, the margin taken to the best candidate of another place
     indices = np.full((n_q, k), -1, dtype=np.int64)
     scores = np.full((n_q, k), -np.inf)
     indices[:, :kk] = ci[:, :kk]
-    scores[:, :kk] = cs[:, :kk]
-    margin = np.where(np.isfinite(scores[:, 1]), scores[:, 0] - scores[:, 1], np.nan) if k > 1 else \
-        np.full(n_q, np.nan)
+    scores[:, :kk] = z[:, :kk]
+    unit_excl = cfg.exclude * (float(ref_unit) if ref_unit else _median_step(rc_all))
+    second = _second_place(ci, rc_all, unit_excl)
+    rows_q = np.arange(n_q)
+    with np.errstate(invalid="ignore"):
+        margin = np.where(second >= 0, z[:, 0] - z[rows_q, np.maximum(second, 0)], np.nan)
+    second_row = np.where(second >= 0, ci[rows_q, np.maximum(second, 0)], -1)
     speed = np.full(n_q, np.nan)
     window = np.ones(n_q, dtype=np.int64)
     seq = np.zeros(n_q, dtype=bool)
@@ -820,10 +934,16 @@ def match_sequences(
     # offline: a run of length + 1 frames or more; causal: a frame with length frames of its run
     # before it (decided from the past only: a live robot does not know how long a run will be)
     so_far = np.arange(n_q) - run_lo + 1
-    use = ((so_far if cfg.causal else run_len) >= cfg.length + 1) if cfg.enabled else np.zeros(n_q, bool)
-    info["fallback"] = _fallback(cfg, n_q, int((~use).sum()))
-    info["sequence_queries"] = int(use.sum())
-    info["single_queries"] = int(n_q - use.sum())
+    reason = np.full(n_q, "", dtype=object)
+    offs = _offsets(cfg)
+    if not cfg.enabled:
+        reason[:] = "single"
+    else:
+        reason[(so_far if cfg.causal else run_len) < cfg.length + 1] = "causal-start" if cfg.causal else "short-run"
+        # the map must cover at least as many reference frames as the window has frames
+        if n_m == 0 or (rc[-1] - rc[0]) / max(unit, 1e-300) + 1 < len(offs) - 1e-9:
+            reason[:] = "small-map"
+    use = reason == ""
 
     if use.any() and n_m:
         qsteps = []
@@ -832,24 +952,25 @@ def match_sequences(
         qs = np.concatenate(qsteps) if qsteps else np.zeros(0)
         qstep = float(np.median(qs[qs > 0])) if np.any(qs > 0) else unit
         vmin, vmax = cfg.speed_range(coordinate)
+        if cfg.speeds is None:
+            vmin, vmax = vmin * pace, vmax * pace
         speeds, step = _speed_grid(cfg, vmin, vmax, unit, qstep)
-        mu, sd = _stats(q, db, cfg.normalize)
         p = _Problem(q, qc, run_lo, run_hi, db.rows[order], rc, full_row, mu, sd, unit, spacing,
-                     cfg.exclude * unit, speeds, vmin, vmax)
-        info.update({"speeds": [vmin, vmax], "speed_step": step, "n_speeds": len(speeds), "unit": unit})
+                     cfg.exclude * unit, speeds, vmin, vmax, cfg, pace)
+        info.update({"speeds": [vmin, vmax], "speed_step": step, "n_speeds": len(speeds), "unit": unit,
+                     "speed_prior": cfg.speed_prior, "pace": pace})
         cand = np.where(ci >= 0, sorted_of_full[np.maximum(ci, 0)], -1)
-        with np.errstate(invalid="ignore"):
-            z = np.where(ci >= 0, (cs.astype(np.float64) - mu[:, None]) / sd[:, None], -np.inf)
         # a candidate's vote: how far it stands out of the frame's next candidate (the (K+1)-th)
         n_valid = (ci >= 0).sum(axis=1)
         floor = z[np.arange(n_q), np.clip(n_valid - 1, 0, cfg.candidates)]
         gain = np.where(ci[:, : cfg.candidates] >= 0, z[:, : cfg.candidates] - floor[:, None], 0.0)
         cand = cand[:, : cfg.candidates]
-        offs = _offsets(cfg)
-        n_places = max(k, EXACT_PLACES)
+        n_places = max(k, cfg.places)
         centres_all = np.flatnonzero(use).astype(np.int64)
-        for a in range(0, len(centres_all), cfg.block):
-            centres = centres_all[a : a + cfg.block]
+        # votes are [centres x window x candidates, speeds]: fewer centres a block when they are many
+        block = max(1, min(cfg.block, VOTE_ELEMS // max(1, len(offs) * cfg.candidates * len(speeds))))
+        for a in range(0, len(centres_all), block):
+            centres = centres_all[a : a + block]
             places, vbest = _votes(p, centres, offs, cand, gain, n_places)
             if cfg.path == "constant":
                 sc, xc, sp = _score_constant(p, centres, offs, places, vbest)
@@ -865,39 +986,88 @@ def match_sequences(
             for j, i in enumerate(centres):
                 _place(p, int(i), sc[j], xc[j], sp[j], int(valid[j].sum()), k, indices, scores, margin, speed,
                        window, seq)
-    sims = _similarities(q, db, indices, _db_rows(db, n_ref))
-    return SequenceMatch(indices, scores, sims, margin, speed, window, seq, info)
+        # a sequence row's second place is its rank 2 (a distinct place)
+        second_row = np.where(seq, indices[:, 1] if k > 1 else -1, second_row)
+    # a row with a voted place none of whose paths scored stays a single frame: say why
+    reason[use & ~seq] = "no-path"
+    fallback = reason.astype(str)
+    _summarise_fallback(info, cfg, fallback)
+    db_rows = _db_rows(db, n_ref)
+    sims = _similarities(q, db, indices, db_rows)
+    ratio = _ratio(q, db, indices[:, 0], second_row, db_rows)
+    return SequenceMatch(indices, scores, sims, margin, speed, window, seq, ratio, fallback, info)
 
 
-def _fallback(cfg: SequenceConfig, n_q: int, n_single: int) -> str | None:
-    """What was matched frame by frame, and why (None: every one of the ``n_q`` rows by sequence)."""
-    if not cfg.enabled:
-        return "single frames asked for (sequence length 0)"
-    if n_q and n_single >= n_q:
-        return (f"no run of {cfg.length + 1} or more ordered frames (a single image, or frames whose "
-                "stamps do not increase): matched frame by frame")
-    if n_q and n_single:
-        where = (f"with fewer than {cfg.length} frames of their run before them" if cfg.causal else
-                 f"in runs shorter than {cfg.length + 1} frames")
-        return f"{n_single} frame(s) {where}: matched frame by frame"
-    return None
+def _second_place(ci: I64, rc_all: F64, excl: float) -> I64:
+    """Per query, the column of ``ci`` (candidates, best first; rows of the reference whose
+    coordinates are ``rc_all``) of the first candidate outside ``excl`` of the best: another
+    place (-1: none among the candidates)."""
+    out = np.full(ci.shape[0], -1, dtype=np.int64)
+    if ci.shape[1] < 2 or not ci.shape[0]:
+        return out
+    c = np.where(ci >= 0, rc_all[np.maximum(ci, 0)], np.nan)
+    with np.errstate(invalid="ignore"):
+        far = (ci[:, 1:] >= 0) & (np.abs(c[:, 1:] - c[:, :1]) > excl) & (ci[:, :1] >= 0)
+    has = far.any(axis=1)
+    out[has] = np.argmax(far[has], axis=1) + 1
+    return out
 
 
-def _expand(sub: SequenceMatch, keep: BoolArray, q: F32, db: Database, n_ref: int,
-            cfg: SequenceConfig) -> SequenceMatch:
+def _ratio(q: F32, db: Database, best: I64, second: I64, db_rows: I64) -> F64:
+    """Lowe's ratio: the query frame's descriptor distance to ``best`` over its distance to
+    ``second`` (reference rows; NaN where either is missing; 1 where both distances are 0)."""
+    out = np.full(len(best), np.nan)
+    ok = np.flatnonzero((best >= 0) & (second >= 0))
+    if len(ok):
+        s1 = _rescore(q, db.rows, ok.astype(np.int64), db_rows[best[ok]])
+        s2 = _rescore(q, db.rows, ok.astype(np.int64), db_rows[second[ok]])
+        d1 = np.sqrt(np.maximum(0.0, 2.0 - 2.0 * s1))
+        d2 = np.sqrt(np.maximum(0.0, 2.0 - 2.0 * s2))
+        out[ok] = np.where(d2 > 0, d1 / np.where(d2 > 0, d2, 1.0), 1.0)
+    return out
+
+
+def _summarise_fallback(info: dict[str, Any], cfg: SequenceConfig, fallback: npt.NDArray[np.str_]) -> None:
+    """``info``'s counts of rows matched as sequences and frame by frame, by reason, and the
+    summary line (None: every row by sequence)."""
+    n_q = len(fallback)
+    counts = {r: int(np.sum(fallback == r)) for r in dict.fromkeys(fallback.tolist()) if r}
+    n_single = sum(counts.values())
+    info["sequence_queries"] = n_q - n_single
+    info["single_queries"] = n_single
+    info["fallback_reasons"] = counts
+    if not n_single:
+        info["fallback"] = None
+        return
+    used = int(info.get("length_used", cfg.length))
+    n = used + (0 if cfg.causal else used) + 1
+    parts = [f"{c} frame(s): {FALLBACK_REASONS.get(r, r)}" for r, c in counts.items()]
+    what = "every frame" if n_single == n_q else f"{n_single} of {n_q} frames"
+    info["fallback"] = f"{what} matched frame by frame (window {n} frames) — " + "; ".join(parts)
+
+
+def _expand(sub: SequenceMatch, keep: BoolArray, q: F32, db: Database, n_ref: int, cfg: SequenceConfig,
+            run_len: I64) -> SequenceMatch:
     """The result of every query row from that of the rows matched (``keep``): a standing row
     takes the result of the last matched row before it, with its own similarities (and counts
-    as matched the way that row was, in ``single_queries`` and the fallback message alike)."""
+    as matched the way that row was). A row whose run was long enough but whose moving frames
+    were too few for the window falls back because the query stood still (``run_len``: each
+    row's run length before the standing rows were left out)."""
     n_q = len(keep)
     last = np.maximum.accumulate(np.where(keep, np.arange(n_q), 0))
     src = (np.cumsum(keep) - 1)[last]
-    indices = sub.indices[src]
-    sims = _similarities(q, db, indices, _db_rows(db, n_ref))
-    seq = sub.sequence[src]
-    n_single = int(n_q - seq.sum())
-    info = {**sub.info, "standing_rows": int((~keep).sum()), "sequence_queries": n_q - n_single,
-            "single_queries": n_single, "fallback": _fallback(cfg, n_q, n_single)}
-    return SequenceMatch(indices, sub.scores[src], sims, sub.margin[src], sub.speed[src], sub.window[src], seq, info)
+    out = sub.take(src)
+    reason = out.fallback.astype(object)
+    reason[(reason == "short-run") & (run_len >= int(sub.info.get("length_used", cfg.length)) + 1)] = "standing"
+    fallback = reason.astype(str)
+    info = {**sub.info, "standing_rows": int((~keep).sum())}
+    _summarise_fallback(info, cfg, fallback)
+    db_rows = _db_rows(db, n_ref)
+    sims = _similarities(q, db, out.indices, db_rows)
+    second = np.where(out.sequence, out.indices[:, 1] if out.indices.shape[1] > 1 else -1, -1)
+    ratio = np.where(out.sequence, _ratio(q, db, out.indices[:, 0], second, db_rows), out.ratio)
+    return SequenceMatch(out.indices, out.scores, sims, out.margin, out.speed, out.window, out.sequence, ratio,
+                         fallback, info)
 
 
 def _median_step(c: F64) -> float:
@@ -934,12 +1104,17 @@ def match_tables(
     index: IVFIndex | None = None,
     nprobe: int | None = None,
     rerank: int | None = None,
+    ref_mask: npt.ArrayLike | None = None,
 ) -> SequenceMatch:
-    """:func:`match_sequences` for two descriptor tables (a query log and a map): the coordinate
-    is resolved (:func:`resolve_coordinate`), the query is cut into runs (:func:`drive_runs`)
-    and put in drive order per topic, a map of several topics keeps its topics apart, and the
-    reference frame spacing comes from the map's frame indices (so a sparse map's gaps are
-    known). Results are in the query table's row order."""
+    """The drive matcher: :func:`match_sequences` for two descriptor tables (a query log and a
+    map), what ``memlog localize``, ``memlog evaluate`` and the benchmarks all call. The
+    coordinate is resolved (:func:`resolve_coordinate`), the query is cut into runs
+    (:func:`drive_runs`) and put in drive order per topic; the map is cut into runs the same way
+    (its topics, recording gaps and frames out of order), each run's coordinates far from the
+    others' so no path crosses from one to the next; the reference frame spacing comes from the
+    map's frame indices (so a sparse map's gaps are known). ``ref_mask``: the map is these rows of
+    ``reference`` (returned rows are rows of the whole table). Results are in the query table's
+    row order."""
     cfg = config or SequenceConfig()
     coordinate, note = resolve_coordinate(cfg.coordinate, query, reference)
     stops = uses_stops(cfg, coordinate)
@@ -950,20 +1125,21 @@ def match_tables(
     perm = np.concatenate(_topic_groups(query)) if len(query) else np.zeros(0, np.int64)
     rc = drive_coordinates(reference, coordinate, stops)
     unit = reference_unit(reference, rc)
-    groups = _topic_groups(reference)
-    if len(groups) > 1:  # several cameras: each topic's coordinates far from the others'
+    ref_runs, _gap = drive_runs(reference, cfg.max_gap_s)
+    if len(rc) and ref_runs.max() > 0:  # several runs (cameras, recording gaps): far apart
         span = float(rc.max() - rc.min()) + 1.0
-        for n, rows in enumerate(groups):
-            rc[rows] = rc[rows] + n * 4.0 * span
+        rc = rc + ref_runs * 4.0 * span
+    pace = drive_pace(query, reference) if coordinate == "frames" else 1.0
     res = match_sequences(query.descriptors[perm], qc[perm], index.db if index is not None else reference.descriptors,
                           rc, cfg, k=k, runs=labels[perm], ref_unit=unit, coordinate=coordinate, index=index,
-                          nprobe=nprobe, rerank=rerank, standing=None if standing is None else standing[perm])
+                          nprobe=nprobe, rerank=rerank, standing=None if standing is None else standing[perm],
+                          ref_mask=None if index is not None else ref_mask, pace=pace)
     inv = np.empty_like(perm)
     inv[perm] = np.arange(len(perm))
-    res = SequenceMatch(res.indices[inv], res.scores[inv], res.similarities[inv], res.margin[inv], res.speed[inv],
-                        res.window[inv], res.sequence[inv], res.info)
+    res = res.take(inv)
     res.info["coordinate_note"] = note
     res.info["max_gap_s"] = gap
     res.info["stops"] = stops
+    res.info["map_runs"] = int(ref_runs.max()) + 1 if len(ref_runs) else 0
     res.info.setdefault("standing_rows", 0)
     return res

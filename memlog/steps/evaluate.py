@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -37,17 +37,8 @@ from memlog.descriptors.auto import AUTO, resolve_descriptor
 from memlog.descriptors.base import Describer
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import DESCRIBERS, make_describer
-from memlog.descriptors.search import match, time_per_query
-from memlog.descriptors.sequence import (
-    SequenceConfig,
-    drive_coordinates,
-    drive_runs,
-    match_sequences,
-    reference_unit,
-    resolve_coordinate,
-    standing_rows,
-    uses_stops,
-)
+from memlog.descriptors.search import time_per_query
+from memlog.descriptors.sequence import SequenceConfig, SequenceMatch, match_tables
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import Whitening
 from memlog.errors import ConfigError, EvaluationError, MemlogError
@@ -170,73 +161,81 @@ def _proto(r: ProtocolResult) -> dict[str, Any]:
 
 
 class _Matching:
-    """How the query drive is matched against a map (a mask over the reference rows): as
-    sequences (the default, :mod:`memlog.descriptors.sequence`) or frame by frame. ``ranked``
-    gives the best places with the confidence the PR curves use in column 0 (the margin for
-    sequences, the similarity for single frames)."""
+    """How the query drive is matched against a map: by the one drive matcher
+    (:func:`memlog.descriptors.sequence.match_tables`, what ``memlog localize`` calls), as
+    sequences (the default) or frame by frame. A map is a mask over the reference rows, or the
+    map's own descriptor table as ``memlog map`` wrote it (``map_table``: read back from its
+    Parquet, so what is measured is the file a user gets). ``ranked`` gives the best places with
+    the confidence the PR curves use in column 0 (the margin, one scale for every row)."""
 
-    def __init__(self, q_t: DescriptorTable, ref_t: DescriptorTable, q: np.ndarray, ref: np.ndarray,
-                 cfg: EvaluateConfig) -> None:
-        self.q, self.ref, self.cfg = q, ref, cfg
+    def __init__(self, q_t: DescriptorTable, ref_t: DescriptorTable, cfg: EvaluateConfig) -> None:
+        self.q_t, self.ref_t, self.cfg = q_t, ref_t, cfg
+        self.q = q_t.descriptors
         self.seq = cfg.sequence
         self.sequence = self.seq.enabled
         self.info: dict[str, Any] = {"matching": "sequence" if self.sequence else "single frame"}
-        if self.sequence:
-            self.coordinate, note = resolve_coordinate(self.seq.coordinate, q_t, ref_t)
-            stops = uses_stops(self.seq, self.coordinate)
-            self.qc = drive_coordinates(q_t, self.coordinate, stops)
-            self.rc = drive_coordinates(ref_t, self.coordinate, stops)
-            self.runs, gap = drive_runs(q_t, self.seq.max_gap_s)
-            self.standing = standing_rows(q_t, self.runs) if stops else None
-            self.unit = reference_unit(ref_t, self.rc)
-            self.info.update({"sequence": self.seq.to_dict(), "coordinate": self.coordinate,
-                              "coordinate_note": note, "max_gap_s": gap, "stops": stops,
-                              "standing_rows": 0 if self.standing is None else int(self.standing.sum())})
         self._full: dict[bool, tuple[np.ndarray, np.ndarray]] = {}
+        self._rows = {int(f): r for r, f in enumerate(ref_t.frame_index)}
 
-    def ranked(self, mask: np.ndarray | None, k: int, sequence: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(indices [Q, k], confidence-first scores [Q, k]) of the map ``mask`` (None: every row)."""
+    def _config(self, sequence: bool) -> SequenceConfig:
+        return self.seq if sequence else replace(self.seq, length=0, causal=False)
+
+    def _record(self, sm: SequenceMatch) -> None:
+        if "sequence" not in self.info and sm.sequence.any():
+            self.info.update({"sequence": self.seq.to_dict(),
+                              **{k: sm.info.get(k) for k in ("coordinate", "coordinate_note", "max_gap_s", "stops",
+                                                             "standing_rows", "length_used", "map_runs")}})
+        if "fallback" not in self.info and sm.info.get("fallback"):
+            self.info["fallback"] = sm.info["fallback"]
+            self.info["fallback_reasons"] = sm.info.get("fallback_reasons")
+        self.info.setdefault("sequence_queries", int(sm.sequence.sum()))
+
+    def ranked(self, mask: np.ndarray | None, k: int, sequence: bool | None = None,
+               map_table: DescriptorTable | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(indices [Q, k] as reference rows, confidence-first scores [Q, k]) of the map ``mask``
+        (None: every row) or ``map_table``."""
         seq = self.sequence if sequence is None else sequence
-        if mask is None and k <= self.cfg.k and seq in self._full:
+        if map_table is None and mask is None and k <= self.cfg.k and seq in self._full:
             idx, sc = self._full[seq]
             return idx[:, :k], sc[:, :k]
-        if not seq:
-            idx, sim = match(self.q, self.ref, k=k, ref_mask=mask)
-            out = (idx, sim.astype(np.float64))
+        if map_table is not None:
+            sm = match_tables(self.q_t, map_table, self._config(seq), k=k)
+            rows = np.array([self._rows.get(int(f), -1) for f in map_table.frame_index], dtype=np.int64)
+            idx = np.where(sm.indices >= 0, rows[np.maximum(sm.indices, 0)], -1)
         else:
-            sm = match_sequences(self.q, self.qc, self.ref, self.rc, self.seq, k=k, ref_mask=mask, runs=self.runs,
-                                 ref_unit=self.unit, coordinate=self.coordinate, standing=self.standing)
-            sc = sm.scores.copy()
-            sc[:, 0] = sm.confidence
-            if "fallback" not in self.info and sm.info.get("fallback"):
-                self.info["fallback"] = sm.info["fallback"]
-            self.info.setdefault("sequence_queries", int(sm.sequence.sum()))
-            out = (sm.indices, sc)
-        if mask is None and k == self.cfg.k:
+            sm = match_tables(self.q_t, self.ref_t, self._config(seq), k=k, ref_mask=mask)
+            idx = sm.indices
+        if seq:
+            self._record(sm)
+        sc = sm.scores.copy()
+        sc[:, 0] = sm.confidence
+        out = (idx, sc)
+        if map_table is None and mask is None and k == self.cfg.k:
             self._full[seq] = out
         return out
 
-    def evaluate(self, truth: list[set[int]], mask: np.ndarray, sequence: bool | None = None
-                 ) -> tuple[dict[str, Any], ProtocolResult, ProtocolResult]:
-        """Both protocols for the map ``mask``: map-only (only its frames are searched) and the
+    def evaluate(self, truth: list[set[int]], mask: np.ndarray, sequence: bool | None = None,
+                 map_table: DescriptorTable | None = None) -> tuple[dict[str, Any], ProtocolResult, ProtocolResult]:
+        """Both protocols for the map ``mask`` (matched against ``map_table`` when given, the
+        map's frames as read back from its file): map-only (only its frames are searched) and the
         paper's (every reference frame searched, a best match outside the map is no match)."""
         cfg = self.cfg
         seq = self.sequence if sequence is None else sequence
         k = min(cfg.k, max(1, int(mask.sum())))
         ns = tuple(n for n in (1, 5, 10) if n <= max(k, 1))
         t0 = time.perf_counter()
-        idx, sc = self.ranked(mask, max(ns), seq)
+        idx, sc = self.ranked(mask, max(ns), seq, map_table)
         seconds = (time.perf_counter() - t0) / max(1, len(self.q))
         mo = evaluate_map_only((idx, sc), truth, mask, ns=ns)
         full_idx, full_sc = self.ranked(None, cfg.k, seq)
         po = evaluate_paper((full_idx[:, : max(ns)], full_sc[:, : max(ns)]), truth, mask, ns=ns,
                             discarded=cfg.paper_discarded)
         if not seq:  # the search alone, repeated (the sequence time above is one pass)
-            seconds = time_per_query(self.q, self.ref, repeats=3, ref_mask=mask, max_queries=50).seconds_per_query
+            seconds = time_per_query(self.q, self.ref_t.descriptors, repeats=3, ref_mask=mask, max_queries=50).seconds_per_query
         out = {"frames": int(mask.sum()), **_proto(mo), "match_seconds_per_query": seconds,
                "paper_protocol": _proto(po)}
         if seq and sequence is None:
-            out["single_frame"] = self.evaluate(truth, mask, sequence=False)[0]
+            out["single_frame"] = self.evaluate(truth, mask, sequence=False, map_table=map_table)[0]
         return out, mo, po
 
 
@@ -426,12 +425,13 @@ def evaluate(
         sel = map_res.selections[ref_topic]
         mask = np.isin(ref_t.frame_index, sel.kept_indices)
         table = score_table(in_window[ref_topic], ref_topic)
-        whitening = _map_whitening(map_res.descriptors) if cfg.whiten else None
-        ref_d = whitening.apply(ref_t.descriptors) if whitening is not None else ref_t.descriptors
-        q_d = whitening.apply(q_t.descriptors) if whitening is not None else q_t.descriptors
+        map_table = read_descriptors(map_res.descriptors) if map_res.descriptors is not None else None
+        whitening = map_table.whitening if (cfg.whiten and map_table is not None) else None
 
-        # 5. variants under both protocols, matched as the localize step does (and frame by frame)
-        matching = _Matching(q_t, ref_t, q_d, ref_d, cfg)
+        # 5. variants under both protocols, matched as the localize step does (and frame by frame):
+        # the memorable map as its Parquet was written, the others as masks of the reference drive
+        # in the same descriptor space (the query whitened with the map's transform, as localize does)
+        matching = _Matching(_whitened(q_t, whitening), _whitened(ref_t, whitening), cfg)
         res: dict[str, Any] = {"descriptor": choice.to_dict(), "describer": describer.meta().to_dict(),
                                "whitening": map_res.whitening, "matching": matching.info}
         per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
@@ -447,11 +447,11 @@ def evaluate(
             if by_distance is not None:
                 variants["uniform_distance"] = by_distance
         for name, m in variants.items():
-            r, mo, po = matching.evaluate(truth_rows, m)
+            r, mo, po = matching.evaluate(truth_rows, m, map_table=map_table if name == "memorable" else None)
             res[name] = r
             per_variant[name] = (mo, po)
         if whitening is not None:
-            raw = _Matching(q_t, ref_t, q_t.descriptors, ref_t.descriptors, cfg)
+            raw = _Matching(q_t, ref_t, cfg)
             res["full_unwhitened"] = raw.evaluate(truth_rows, variants["full"])[0]
         res["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
                                  "select": cfg.select.mode, "candidates": cfg.candidates,
@@ -511,11 +511,13 @@ def evaluate(
     return EvaluateResult(results, reports)
 
 
-def _map_whitening(path: Path | None) -> Whitening | None:
-    """The whitening transform stored with the map's descriptors (None when it is not whitened)."""
-    if path is None:
-        return None
-    return read_descriptors(path).whitening
+def _whitened(table: DescriptorTable, whitening: Whitening | None) -> DescriptorTable:
+    """``table`` with its descriptors whitened by ``whitening`` (the map's: the space the map's
+    Parquet is in, as ``describer_for`` puts a query there); unchanged without one."""
+    if whitening is None:
+        return table
+    meta = replace(table.meta, dim=whitening.dim_out, whitening=whitening.sha256)
+    return replace(table, descriptors=whitening.apply(table.descriptors), meta=meta, whitening=None)
 
 
 def _position_truth(ref_t: DescriptorTable, q_t: DescriptorTable, tol_m: float) -> list[set[int]]:

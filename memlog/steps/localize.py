@@ -40,7 +40,7 @@ from memlog.descriptors.approx import IVFIndex, SearchConfig, choose
 from memlog.descriptors.base import Describer, check_compatible
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import make_describer
-from memlog.descriptors.search import Database, QueryTiming, confidence, time_per_query
+from memlog.descriptors.search import Database, QueryTiming, time_per_query
 from memlog.descriptors.sequence import SequenceConfig, has_positions, match_tables
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import WhitenedDescriber
@@ -49,6 +49,7 @@ from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow
 from memlog.io.records import ReadReport
 from memlog.outputs.descriptor_table import read_cached, read_descriptors, stored_dtype, write_descriptors
+from memlog.outputs.map_artefact import check_map_pair
 from memlog.outputs.matches import write_match_log, write_matches
 from memlog.progress import info, warning
 from memlog.selection.segment import SEGMENT_DEFAULTS, recorded_still_distance
@@ -125,10 +126,12 @@ def localize(
     *,
     annotate: str | os.PathLike[str] | None = None,
     query_descriptors: str | os.PathLike[str] | None = None,
+    map_log: str | os.PathLike[str] | None = None,
 ) -> LocalizeResult:
-    """Match every frame of ``query_log`` against the map (see module doc)."""
+    """Match every frame of ``query_log`` against the map (see module doc). ``map_log``: the map
+    MCAP the descriptors belong to, checked first (:func:`~memlog.outputs.map_artefact.check_map_pair`)."""
     cfg = config or LocalizeConfig()
-    inputs = [map_descriptors, query_log]
+    inputs = [map_descriptors, query_log] + ([map_log] if map_log is not None else [])
     check_output(output, inputs)
     if annotate is not None:
         check_output(annotate, inputs + [output], flag="--annotate")
@@ -136,6 +139,8 @@ def localize(
         check_output(query_descriptors, [*inputs, output] + ([annotate] if annotate else []),
                      flag="--query-descriptors")
     cfg.search.require_faiss()
+    if map_log is not None:
+        check_map_pair(map_log, map_descriptors)
     ref = read_descriptors(map_descriptors)
     if len(ref) == 0:
         raise DescriptorError(f"{map_descriptors}: the map has no descriptors")
@@ -170,15 +175,14 @@ def localize(
     idx, sims = res.indices, res.similarities
     seconds = (time.perf_counter() - t0) / max(1, len(qt))
     timing_map = QueryTiming(seconds, seconds, len(ref), ref.meta.dim, len(qt), 1)
-    conf = confidence(sims)
     how = np.where(res.sequence, "causal sequence" if cfg.sequence.causal else "sequence", "single frame")
     seq_scores = np.where(res.sequence[:, None] & (idx >= 0), res.scores, np.nan)
     sequence = {**_sequence_record(res.info, cfg.sequence), "still_distance": still}
     out = write_matches(
         output, idx, sims, query_ids=qt.frame_index, ref_ids=ref.frame_index,
         query_columns={"query_topic": np.array(qt.topic), "query_log_time_ns": qt.log_time_ns,
-                       "confidence": res.confidence, "margin": np.where(res.sequence, res.margin, conf.margin),
-                       "ratio": conf.ratio, "matched_by": how, "sequence_speed": res.speed,
+                       "confidence": res.confidence, "margin": res.margin, "ratio": res.ratio,
+                       "matched_by": how, "fallback": res.fallback, "sequence_speed": res.speed,
                        "sequence_window": res.window},
         ref_columns={"ref_topic": np.array(ref.topic), "ref_log_time_ns": ref.log_time_ns},
         rank_columns={"sequence_score": seq_scores},
@@ -220,8 +224,9 @@ def map_still_distance(ref: DescriptorTable, path: str | os.PathLike[str], cfg: 
 def _sequence_record(found: dict[str, Any], cfg: SequenceConfig) -> dict[str, Any]:
     """What the outputs record about sequence matching: the settings asked for, what was used
     (coordinate, speeds searched, the reference's frame spacing) and the fallback, if any."""
-    keys = ("coordinate", "coordinate_note", "speeds", "speed_step", "n_speeds", "unit", "runs", "max_gap_s",
-            "sequence_queries", "single_queries", "fallback", "stops", "standing_rows")
+    keys = ("coordinate", "coordinate_note", "length_used", "speeds", "speed_step", "n_speeds", "speed_prior", "unit",
+            "runs", "max_gap_s", "sequence_queries", "single_queries", "fallback", "fallback_reasons", "stops",
+            "standing_rows")
     out = {"asked": cfg.to_dict(), "length": cfg.length, "mode": "causal" if cfg.causal else "offline",
            "candidates": cfg.candidates, "path": cfg.path, **{k: found.get(k) for k in keys}}
     if not cfg.enabled:

@@ -299,7 +299,7 @@ def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topi
             recs = [r for r in recs if r["frame_index"] in have]
             if recs and cfg.select.needs_descriptors:
                 descs = np.stack([np.asarray(have[r["frame_index"]][0]) for r in recs]).astype(np.float32)
-            if recs and cfg.select.needs_view:
+            if recs and _needs_view(cfg):
                 view = np.stack([np.asarray(have[r["frame_index"]][1]) for r in recs]).astype(np.float32)
         table = score_table(recs, t, track, descs, None if ds_by_topic is None else ds_by_topic.get(t, {}), view)
         left_out = len(recs_by_topic.get(t, [])) - table.n
@@ -321,8 +321,14 @@ def _ms_bound(cfg: MapConfig) -> str:
     return "one" if cfg.score.normalize == "static" else "ss"
 
 
+def _needs_view(cfg: MapConfig) -> bool:
+    """Every frame's view vector is needed: by selection, or for the map's moving index (the
+    stops the query's are found alike with), whatever ``--select``, when descriptors are written."""
+    return cfg.select.needs_view or cfg.descriptor is not None
+
+
 def _needs_looks(cfg: MapConfig) -> bool:
-    return cfg.select.needs_descriptors or cfg.select.needs_view
+    return cfg.select.needs_descriptors or _needs_view(cfg)
 
 
 Crops = tuple[int | None, int | None]
@@ -345,7 +351,7 @@ def _full(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: P
     if _needs_looks(cfg):
         looks = {t: frame_looks(reader, t, {r["frame_index"] for r in recs_by_topic.get(t, [])
                                            if r.get("rejected_by") != "undecodable"},
-                                sel_cfg.needs_descriptors, sel_cfg.needs_view) for t in cams}
+                                sel_cfg.needs_descriptors, _needs_view(cfg)) for t in cams}
     return recs_by_topic, looks, crops
 
 
@@ -359,7 +365,7 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
     cheap: dict[str, list[CheapFrame]] = {t: [] for t in cams}
     total = reader.count_frames(window)
     for cf in progress(cheap_frames(log, reader, score_cfg, window, ex, thumbs=sel_cfg.needs_descriptors,
-                                    views=sel_cfg.needs_view),
+                                    views=_needs_view(cfg)),
                        total=total, desc="cheap scores", unit="frame"):
         cheap[cf.frame.topic].append(cf)
     seg_cfg = SegmentConfig(**sel_cfg.segment_settings())
@@ -376,7 +382,7 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
             es=np.array([round(float(cf.es or 0.0), 6) for cf in good]),
             positions=_positions(track, good),
             descriptors=np.stack([np.asarray(cf.thumb) for cf in good]) if sel_cfg.needs_descriptors else None,
-            view=np.stack([np.asarray(cf.view) for cf in good]) if sel_cfg.needs_view else None,
+            view=np.stack([np.asarray(cf.view) for cf in good]) if _needs_view(cfg) else None,
             topic=t)
         seg, coord, _ = cut_segments(table, seg_cfg)
         passing = (table.ss >= sel_cfg.min_ss) & (table.es >= sel_cfg.min_es)
