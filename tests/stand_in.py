@@ -2,7 +2,9 @@
 its pixels, so the crop loop, early exit, segments and thresholds are the real ones while a frame
 costs milliseconds instead of seconds. The detector and entropy stay real.
 
-* :func:`use_stand_in` (with pytest's ``monkeypatch``): this process's steps score with it;
+* :func:`use_stand_in` (with pytest's ``monkeypatch``): this process's steps score with it, and
+  so do the local worker processes it starts (they are spawned, not forked: each is given the
+  stand-in when it starts, by :func:`worker_setup` in place of memlog's);
 * :func:`install`: a Ray ``worker_process_setup_hook`` (``"tests.stand_in.install"``): in a Ray
   worker, the steps score with it while the file named by ``$MEMLOG_TEST_STAND_IN`` exists, and
   with the real ResMem otherwise (so one Ray instance serves both kinds of test).
@@ -56,12 +58,24 @@ def _patched(real: Callable[[ScoreConfig], Scorer], active: Callable[[], bool]) 
 
 
 def use_stand_in(monkeypatch: Any) -> None:
-    """Score with the stand-in in this process (and in local worker processes forked from it)."""
-    from memlog.steps import map_scoring
+    """Score with the stand-in in this process and in the local worker processes it starts."""
+    from memlog.steps import map_scoring, parallel
     from memlog.steps import score as score_mod
 
     for mod in (map_scoring, score_mod):
         monkeypatch.setattr(mod, "_scorer_for", _patched(mod._scorer_for, lambda: True))
+    monkeypatch.setattr(parallel, "worker_setup", worker_setup)
+
+
+def worker_setup(quiet: bool, levels: dict[str, int]) -> None:
+    """A local worker's start (``Processes`` passes it by name; a spawned worker imports memlog
+    afresh, so this process's patches are not there): memlog's own, then the stand-in."""
+    from memlog.steps import map_scoring, parallel
+    from memlog.steps import score as score_mod
+
+    parallel.worker_setup(quiet, levels)
+    for mod in (map_scoring, score_mod):
+        mod._scorer_for = _patched(mod._scorer_for, lambda: True)  # type: ignore[attr-defined]
 
 
 def install() -> None:

@@ -1,9 +1,9 @@
 """``memlog batch`` without Ray: placement, manifests, usage errors before any work, local worker
 processes giving the one-process outputs, and resume. (Ray itself: ``tests/test_batch_ray.py``.)
 
-The resume test scores with the stand-in ResMem (``tests/stand_in.py``; local worker processes are
-forked from the test process and inherit it); the last test runs the real models on a fixture log
-of every format.
+The resume test scores with the stand-in ResMem (``tests/stand_in.py``; the local worker processes,
+spawned, are given it when they start); the last test runs the real models on a fixture log of
+every format.
 """
 
 from __future__ import annotations
@@ -256,25 +256,24 @@ def test_batch_says_when_a_map_is_smaller_than_asked(tmp_path: Path, monkeypatch
 
 def _killer(*args: object) -> object:
     """A scoring job whose worker process dies (out of memory, say) the first time a job ends:
-    exactly one worker wins the marker's unlink, so no other job sees the marker vanish under it."""
-    from tests import test_batch
+    exactly one worker wins the marker's unlink, so no other job sees the marker vanish under it.
+    (It runs on a spawned worker, whose ``score_chunk`` is memlog's: the test's patch is the driver's.)"""
+    from memlog.steps.score import score_chunk
     from tests.worker_kill import die_once
 
-    return die_once(os.environ["MEMLOG_TEST_MARKER"], test_batch._REAL_SCORE_CHUNK, *args)
+    return die_once(os.environ["MEMLOG_TEST_MARKER"], score_chunk, *args)
 
 
 def test_a_broken_pool_is_replaced_for_the_logs_after_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """With several logs at once, a worker killed while one log runs fails that log (and the
     logs sharing the pool at that moment); every log started later runs on a new pool."""
     import memlog.steps.score as score_mod
-    from tests import test_batch
 
     use_stand_in(monkeypatch)
     marker = tmp_path / "kill-once"
     marker.write_text("")
     monkeypatch.setenv("MEMLOG_TEST_MARKER", str(marker))
-    monkeypatch.setattr(test_batch, "_REAL_SCORE_CHUNK", score_mod.score_chunk, raising=False)
-    monkeypatch.setattr(score_mod, "score_chunk", _killer)
+    monkeypatch.setattr(score_mod, "score_chunk", _killer)  # the driver hands its workers _killer
     logs = []
     for k in range(4):
         logs.append(tmp_path / f"log{k}.mcap")

@@ -165,6 +165,33 @@ def test_damaged_logs_in_the_manifest_do_not_stop_the_others(
     assert_same_outputs(good["outputs"], want["ros2_sqlite"])
 
 
+def _cap_and_say(text: str) -> int:
+    """A job: says ``text`` on the ``memlog`` logger, returns the pixel cap in force on its worker."""
+    from memlog.io.image import max_pixels
+    from memlog.progress import warning
+
+    warning(text)
+    return max_pixels()
+
+
+def test_the_drivers_settings_reach_the_actors_and_their_records_come_back(
+        ray_dir: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """An actor is started by Ray, not by this process: the pixel cap (--max-pixels) set here after
+    Ray started is given to it, and what its jobs log is handled by this process's loggers."""
+    from memlog.io.image import max_pixels, set_max_pixels
+    from memlog.steps.ray_pool import Placement, RayActors
+
+    monkeypatch.setenv("MEMLOG_MAX_PIXELS", str(max_pixels()))  # restored after the test
+    set_max_pixels(54321)
+    caplog.set_level(logging.INFO, logger="memlog")
+    ex = RayActors(Placement(1, 1, 0.0))
+    try:
+        assert list(ex.map_ordered(_cap_and_say, [("said on a Ray worker",)])) == [54321]
+    finally:
+        ex.close()
+    assert [r.getMessage() for r in caplog.records if r.name == "memlog"] == ["said on a Ray worker"]
+
+
 def test_real_resmem_on_ray_gives_the_one_process_outputs(tmp_path: Path, ray_dir: Path) -> None:
     assert not (ray_dir / "stand-in.on").exists()
     cfg = BatchConfig(map=MapConfig(stride=2), ray=True, workers=2, chunk_frames=1)

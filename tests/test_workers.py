@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -57,13 +58,28 @@ def _finish_late(i: int, delay: float) -> tuple[int, float]:
     return i, time.monotonic()
 
 
+def _pid_after(delay: float) -> int:
+    time.sleep(delay)
+    return os.getpid()
+
+
+def _started(ex: Processes) -> Processes:
+    """``ex`` once each of its workers has run a job (spawned workers start one by one, each
+    importing the jobs' modules), so jobs timed next start when they are handed out."""
+    seen: set[int] = set()
+    deadline = time.monotonic() + 60
+    while len(seen) < ex.workers and time.monotonic() < deadline:
+        seen |= set(ex.map_ordered(_pid_after, [(0.2,)] * ex.workers))
+    return ex
+
+
 # Earlier jobs take longer: on two workers job 1 and 2 finish before job 0 (job 0 holds one
 # worker for 0.8 s while the other runs 1, then 2, ...), so an executor that gave results back
 # as they complete would return 1 before 0.
 _LATE_JOBS = [(0, 0.8), (1, 0.4), (2, 0.0), (3, 0.0), (4, 0.0), (5, 0.0)]
 
 
-@pytest.mark.parametrize("make", [InProcess, lambda: Processes(2, ahead=3)], ids=["InProcess", "Processes"])
+@pytest.mark.parametrize("make", [InProcess, lambda: _started(Processes(2, ahead=3))], ids=["InProcess", "Processes"])
 def test_executors_keep_job_order(make) -> None:  # type: ignore[no-untyped-def]
     ex = make()
     try:

@@ -9,9 +9,14 @@ next reader of the same unchanged file starts from there instead of reading the 
 the warnings a log gave are said once per process (every reader's report still records them, so
 damage is still reported by every step).
 
-Worker processes forked from a driver that has opened the log inherit its entries. Entries are
-dropped least recently used first (never while a reader uses them), and all at exit;
-:func:`clear_cache` drops them now (tests; a notebook that wants a log read afresh).
+The cache is this process's alone: memlog's worker processes are spawned, not forked
+(:mod:`memlog.steps.parallel`; Ray actors likewise), so each worker learns a log itself the first
+time one of its jobs opens it, and keeps it for its next jobs (a log that must be scanned is
+scanned once per worker, not once per job; a job carries only the log's path). A process that
+other code forks from one that has opened a log inherits its entries; a ROS 2 bag's sqlite
+connections are opened again in it, never shared. Entries are dropped least recently used first
+(never while a reader uses them), and all at exit; :func:`clear_cache` drops them now (tests; a
+notebook that wants a log read afresh).
 """
 
 from __future__ import annotations

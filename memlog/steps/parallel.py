@@ -9,23 +9,61 @@ process, see :func:`cached`) and ONNX Runtime thread count, so workers do not ov
 cores. The Ray executor of ``memlog batch`` (:mod:`memlog.steps.ray_pool`) implements the same
 interface; an executor may also say how many threads its jobs should use (``threads``, see
 :func:`job_threads`) and that its workers are other machines (``remote``).
+
+**How workers start.** Local workers are started with the ``spawn`` method
+(:data:`START_METHOD`) on every platform, never forked from the driver: a worker is a new
+interpreter that imports what its jobs need, as a Ray actor is. A fork would copy the driver's
+state as it is at that moment: its threads' locks (``memlog batch`` runs logs side by side on
+threads, ONNX Runtime and Ray run their own), open sqlite connections and files, caches, models
+already loaded. The workers are long-lived (one pool per step, or per ``memlog batch`` run) and load
+their models once each, so a new interpreter per worker costs little; ``forkserver`` would save
+only the imports, and only with a preload list that is global to the program, and it does not exist
+on Windows (where, as on macOS, ``spawn`` is the default anyway). So everything a job needs
+travels with it or is given to each worker when it starts:
+
+* the job's function and arguments (pickled; the function is found by its module and name);
+* whether progress is quiet, and the levels of the ``memlog`` loggers (:func:`worker_setup`, run
+  by each worker when it starts);
+* the pixel cap (``MEMLOG_MAX_PIXELS``, :func:`memlog.io.image.set_max_pixels`: the environment,
+  which a started process inherits);
+* what opening a log learned is learned again by each worker, once (:mod:`memlog.io._opened`).
+
+What a job logs on the ``memlog`` loggers goes back with its result (or its exception) and is
+handled by the driver's ``memlog`` loggers, as if it had been logged there; but not what its
+readers warn (``memlog.io``): that is in the job's report, which the driver's reader absorbs and
+says once (:meth:`~memlog.io.base.LogReader.absorb`). A script that runs a
+step on workers must keep its own work under ``if __name__ == "__main__":`` (each worker imports
+the script's main module, as on macOS and Windows).
 """
 
 from __future__ import annotations
 
+import copy
+import logging
+import multiprocessing
 import os
 from collections import deque
 from collections.abc import Callable, Hashable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from multiprocessing.context import BaseContext
 from typing import Any, Protocol, TypeVar
 
 from memlog.errors import ConfigError
 
 __all__ = ["Executor", "InProcess", "Processes", "make_executor", "cached", "cpu_count", "threads_per_worker",
-           "job_threads"]
+           "job_threads", "START_METHOD", "mp_context", "log_levels", "worker_setup", "run_job", "replay"]
 
 R = TypeVar("R")
 Job = tuple[Any, ...]
+
+#: How memlog starts its local worker processes (see the module's doc).
+START_METHOD = "spawn"
+
+
+def mp_context() -> BaseContext:
+    """The multiprocessing context of memlog's local worker processes (:data:`START_METHOD`)."""
+    return multiprocessing.get_context(START_METHOD)
 
 
 class Executor(Protocol):
@@ -76,25 +114,121 @@ class InProcess:
         pass
 
 
-def _init_worker(quiet: bool) -> None:
+# -- what a worker is given, and what it gives back -------------------------------------------------
+_LOGS = "memlog_worker_logs"  # the attribute of a failed job's exception that takes its records back
+#: The loggers a worker's records come back from (:mod:`memlog.progress`).
+_LOGGERS = ("memlog", "memlog.progress")
+
+
+def log_levels() -> dict[str, int]:
+    """The levels of this process's ``memlog`` loggers, for :func:`worker_setup`."""
+    return {name: logging.getLogger(name).getEffectiveLevel() for name in _LOGGERS}
+
+
+class _Keep(logging.Handler):
+    """A worker's handler of the ``memlog`` loggers: keeps the running job's records for the driver."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        r = copy.copy(record)  # one that pickles: the message as text, a traceback as text
+        if record.exc_info and not r.exc_text:
+            r.exc_text = logging.Formatter().formatException(record.exc_info)
+        r.msg, r.args, r.exc_info = record.getMessage(), None, None
+        self.records.append(r)
+
+
+_KEEP: _Keep | None = None
+
+
+def worker_setup(quiet: bool, levels: dict[str, int]) -> None:
+    """Prepare a worker process: progress quiet or not, the driver's ``memlog`` logger levels
+    (:func:`log_levels`), and what the ``memlog`` loggers get kept for the driver (:func:`run_job`;
+    not the readers' warnings, which the job's report takes back)."""
     from memlog.progress import set_quiet
 
+    global _KEEP
     set_quiet(quiet)
+    _KEEP = _Keep()
+    top = logging.getLogger("memlog")
+    for h in list(top.handlers):
+        top.removeHandler(h)
+    top.addHandler(_KEEP)
+    top.propagate = False  # the driver's handlers say it, not this process's root
+    for name, level in levels.items():
+        logging.getLogger(name).setLevel(level)
+    # A reader's warnings are in its job's ReadReport, which the driver's reader absorbs and says
+    # once (LogReader.absorb); said here too, they would be said twice.
+    io = logging.getLogger("memlog.io")
+    io.addHandler(logging.NullHandler())
+    io.propagate = False
+
+
+def run_job(fn: Callable[..., R], job: Job) -> tuple[R, list[logging.LogRecord]]:
+    """``fn(*job)`` on a worker, with the records it logged (for :func:`replay`); when it raises,
+    the records go with its exception."""
+    keep = _KEEP
+    if keep is None:  # not a worker made by worker_setup: its loggers say it themselves
+        return fn(*job), []
+    keep.records = []
+    try:
+        result = fn(*job)
+    except BaseException as exc:
+        setattr(exc, _LOGS, keep.records)
+        keep.records = []
+        raise
+    records, keep.records = keep.records, []
+    return result, records
+
+
+def replay(records: Iterable[logging.LogRecord] | BaseException) -> None:
+    """Hand a worker's records (or those its failed job's exception carries) to this process's
+    loggers, as if they had been logged here."""
+    got = records.__dict__.pop(_LOGS, ()) if isinstance(records, BaseException) else records
+    for r in got:
+        lg = logging.getLogger(r.name)
+        if lg.isEnabledFor(r.levelno):
+            lg.handle(r)
+
+
+def _nothing() -> None:
+    """An empty job (:attr:`Processes.broken` offers one to a pool to see whether it takes jobs)."""
 
 
 class Processes:
-    """A pool of ``workers`` processes; at most ``ahead`` jobs are submitted beyond the one whose
-    result is awaited next (bounded memory for results waiting to be merged)."""
+    """A pool of ``workers`` processes, started by :data:`START_METHOD`; at most ``ahead`` jobs are
+    submitted beyond the one whose result is awaited next (bounded memory for results waiting to be
+    merged)."""
 
     def __init__(self, workers: int, *, quiet: bool = True, ahead: int | None = None) -> None:
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
         self.workers = workers
         self.ahead = ahead if ahead is not None else 2 * workers
-        self._pool = ProcessPoolExecutor(workers, initializer=_init_worker, initargs=(quiet,))
+        self._broken = False
+        self._closed = False
+        self._pool = ProcessPoolExecutor(workers, mp_context=mp_context(), initializer=worker_setup,
+                                         initargs=(quiet, log_levels()))
+
+    def _watch(self, f: Future[Any]) -> None:
+        """A job's future is done: a pool that lost a worker fails its jobs with ``BrokenProcessPool``
+        (the one that ran there, and every one waiting), whether or not anyone awaits them."""
+        if not f.cancelled() and isinstance(f.exception(), BrokenProcessPool):
+            self._broken = True
+
+    def _submit(self, fn: Callable[..., Any], *args: Any) -> Future[Any]:
+        try:
+            f = self._pool.submit(fn, *args)
+        except BrokenProcessPool:
+            self._broken = True
+            raise
+        f.add_done_callback(self._watch)
+        return f
 
     def map_ordered(self, fn: Callable[..., R], jobs: Iterable[Job]) -> Iterator[R]:
-        pending: deque[Future[R]] = deque()
+        pending: deque[Future[tuple[R, list[logging.LogRecord]]]] = deque()
         it = iter(jobs)
         exhausted = False
         while True:
@@ -104,22 +238,35 @@ class Processes:
                 except StopIteration:
                     exhausted = True
                     break
-                pending.append(self._pool.submit(fn, *job))
+                pending.append(self._submit(run_job, fn, job))
             if not pending:
                 return
             try:
-                yield pending.popleft().result()
-            except BaseException:
+                result, records = pending.popleft().result()
+                replay(records)
+                yield result
+            except BaseException as exc:
+                replay(exc)
                 for f in pending:
                     f.cancel()
                 raise
 
     @property
     def broken(self) -> bool:
-        """A worker process died: every job submitted from now on fails with ``BrokenProcessPool``."""
-        return bool(getattr(self._pool, "_broken", False))
+        """A worker process died: every job submitted from now on fails with ``BrokenProcessPool``.
+        Seen in the jobs' futures; a worker that died between jobs is seen by offering the pool an
+        empty job (a broken pool refuses it)."""
+        if not self._broken and not self._closed:
+            try:
+                self._submit(_nothing)
+            except BrokenProcessPool:
+                pass  # (_submit noted it)
+            except RuntimeError:  # the interpreter is shutting down: no job is started any more
+                pass
+        return self._broken
 
     def close(self) -> None:
+        self._closed = True
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 

@@ -32,7 +32,7 @@ from typing import Any, NamedTuple, TypeVar
 
 from memlog._version import __version__
 from memlog.errors import ConfigError, MemlogError
-from memlog.steps.parallel import Job, cpu_count
+from memlog.steps.parallel import Job, cpu_count, log_levels, replay, run_job, worker_setup
 
 __all__ = ["RAY_INSTALL", "ray_available", "require_ray", "connect", "Node", "cluster_nodes", "NodePlacement",
            "Placement", "plan_placement", "RayActors", "WorkerLostError"]
@@ -220,12 +220,15 @@ def plan_placement(nodes: Sequence[Node], *, workers: int | None = None, threads
 
 
 class _Worker:
-    """One Ray actor: a worker process that runs jobs; models stay in its process cache."""
+    """One Ray actor: a worker process that runs jobs; models stay in its process cache. Ray
+    starts it afresh (on any node), so it is given what the driver's settings say: the pixel cap
+    and the levels of the ``memlog`` loggers (what its jobs log goes back with their results)."""
 
-    def __init__(self, threads: int) -> None:
-        from memlog.progress import set_quiet
+    def __init__(self, threads: int, max_pixels: int, levels: dict[str, int]) -> None:
+        from memlog.io.image import set_max_pixels
 
-        set_quiet(True)
+        worker_setup(True, levels)
+        set_max_pixels(max_pixels)
         try:
             import cv2
 
@@ -241,8 +244,9 @@ class _Worker:
                 "memlog": __version__, "providers": choose_providers(device),
                 "gpus": os.environ.get("CUDA_VISIBLE_DEVICES")}
 
-    def run(self, fn: Callable[..., Any], job: Job) -> tuple[int, Any]:
-        return os.getpid(), fn(*job)
+    def run(self, fn: Callable[..., Any], job: Job) -> tuple[int, Any, list[logging.LogRecord]]:
+        result, records = run_job(fn, job)
+        return os.getpid(), result, records
 
 
 class RayActors:
@@ -269,13 +273,16 @@ class RayActors:
         self.ahead = ahead if ahead is not None else depth * placement.actors
         self.restarts = 0
         affinity = importlib.import_module("ray.util.scheduling_strategies").NodeAffinitySchedulingStrategy
+        from memlog.io.image import max_pixels
+
         cls = ray.remote(_Worker)
+        cap, levels = max_pixels(), log_levels()  # the driver's settings, which a Ray worker does not inherit
         self._actors = []
         for group in placement.nodes or (NodePlacement("", placement.actors, placement.gpus),):
             pin = {"scheduling_strategy": affinity(group.node, soft=True)} if group.node else {}
             one = cls.options(num_cpus=placement.threads, num_gpus=group.gpus, max_restarts=-1,
                               max_task_retries=max_retries, **pin)
-            self._actors += [one.remote(placement.threads) for _ in range(group.actors)]
+            self._actors += [one.remote(placement.threads, cap, levels) for _ in range(group.actors)]
         try:
             self.info = ray.get([a.info.remote(device) for a in self._actors], timeout=start_timeout_s)
         except ray.exceptions.GetTimeoutError:
@@ -342,15 +349,18 @@ class RayActors:
         ray = _ray()
 
         try:
-            pid, result = ray.get(ref)
+            pid, result, records = ray.get(ref)
         except ray.exceptions.RayTaskError as err:
-            raise _cause(err) from None
+            cause = _cause(err)
+            replay(cause)
+            raise cause from None
         except ray.exceptions.RayError as err:
             raise WorkerLostError(f"a Ray worker died on each of {self.max_retries + 1} attempts at one job (out of "
                                   f"memory? a crash? see the Ray logs): {type(err).__name__}: {err}") from None
         if pid != self._pids[k]:  # Ray restarted this actor since we last heard from it
             self.restarts += 1
             self._pids[k] = pid
+        replay(records)
         return result
 
     def close(self) -> None:

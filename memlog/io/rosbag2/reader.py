@@ -72,6 +72,9 @@ def _inflate(data: bytes) -> bytes:
 class _Db3:
     """One sqlite3 storage file, read row by row."""
 
+    _con: sqlite3.Connection
+    _pid: int  # the process that opened _con
+
     def __init__(self, path: Path, owner: LogReader) -> None:
         self.path, self.owner = path, owner
         self._tmp: IO[bytes] | None = None
@@ -88,6 +91,20 @@ class _Db3:
                 raise _FileBad(f"sqlite cannot read it ({exc2})") from None
         self.msgdefs = self._msgdefs()
         self._rows: tuple[Any, Any, Any] | None = None
+
+    @property
+    def con(self) -> sqlite3.Connection:
+        """This process's connection: a process forked after the file was opened (the entry of
+        :mod:`memlog.io._opened` came with it) opens its own, never using its parent's."""
+        if self._pid != os.getpid():
+            where = Path(self._tmp.name) if self._tmp is not None else self.path
+            self._con = sqlite3.connect(f"file:{where}?immutable=1", uri=True, check_same_thread=False)
+            self._pid = os.getpid()
+        return self._con
+
+    @con.setter
+    def con(self, con: sqlite3.Connection) -> None:
+        self._con, self._pid = con, os.getpid()
 
     @staticmethod
     def _connect(path: Path) -> sqlite3.Connection:
@@ -138,7 +155,8 @@ class _Db3:
         return {t: (e, d) for t, e, d in rows if isinstance(t, str) and isinstance(d, str) and d.strip()}
 
     def close(self) -> None:
-        self.con.close()
+        if self._pid == os.getpid():  # (a parent's connection is the parent's to close)
+            self._con.close()
         if self._tmp is not None:
             self._tmp.close()
             self._tmp = None
