@@ -179,15 +179,12 @@ def outcomes(q: Drive, r: Drive, mask: np.ndarray | None, seq: Any) -> tuple[np.
     """Per query frame, whether its best match in the map ``mask`` is right (and with a stop's
     frames as one place), and the AUC-PR; matched as ``memlog localize`` matches (with
     ``seq.stops``: along the moving index, a standing query frame taking its stop's match)."""
-    from memlog.descriptors.sequence import match_sequences, uses_stops
+    from dataclasses import replace
+
+    from memlog.descriptors.sequence import match_tables
     from memlog.evaluation.metrics import pr_curve
 
-    stops = uses_stops(seq, "frames")
-    qc = (q.moving if stops else q.frame_index).astype(np.float64)
-    rc = (r.moving if stops else r.frame_index).astype(np.float64)
-    standing = np.r_[False, q.moving[1:] == q.moving[:-1]] if stops else None
-    res = match_sequences(q.desc, qc, r.desc, rc, seq, k=1, ref_mask=mask, coordinate="frames", ref_unit=1.0,
-                          standing=standing)
+    res = match_tables(q.table(), r.table(), replace(seq, coordinate="frames"), k=1, ref_mask=mask)
     truth = truth_sets(q, r)
     best = res.indices[:, 0]
     correct = np.array([b >= 0 and int(b) in s for b, s in zip(best, truth)])

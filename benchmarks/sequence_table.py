@@ -75,6 +75,21 @@ class Drive:
     def __len__(self) -> int:
         return len(self.frame_index)
 
+    def table(self) -> Any:
+        """The drive as the descriptor table ``memlog localize`` matches (its current descriptors)."""
+        return as_table(self.desc, self.frame_index, self.stamp_ns, self.moving, self.xyz)
+
+
+def as_table(desc: np.ndarray, frame_index: np.ndarray, stamp_ns: np.ndarray, moving: np.ndarray | None = None,
+             xyz: np.ndarray | None = None) -> Any:
+    """A DescriptorTable of one camera topic: what the drive matcher (``match_tables``) takes."""
+    from memlog.descriptors.base import DescriptorMeta
+    from memlog.descriptors.table import DescriptorTable
+
+    pos = {c: xyz[:, i] for i, c in enumerate("xyz")} if xyz is not None and xyz.shape[1] == 3 else {}
+    return DescriptorTable(["/cam"] * len(frame_index), frame_index, stamp_ns, stamp_ns, desc,
+                           DescriptorMeta("thumbnail", "1", desc.shape[1]), positions=pos, moving_index=moving)
+
 
 def _describe(log: Path, cache: Path) -> dict[str, np.ndarray]:
     path = cache / (log.stem + ".npz")
@@ -122,31 +137,17 @@ def truth_sets(q: Drive, r: Drive) -> list[set[int]]:
     return [set(m) for m in t["matches"]]
 
 
-def coords(d: Drive, kind: str) -> np.ndarray:
-    if kind == "frames":
-        return d.frame_index.astype(np.float64)
-    if kind == "time":
-        return (d.stamp_ns - d.stamp_ns[0]).astype(np.float64) / 1e9
-    step = np.r_[0.0, np.linalg.norm(np.diff(d.xyz[:, :2], axis=0), axis=1)]
-    return np.cumsum(step)
-
-
-def ref_unit(r: Drive, kind: str, c: np.ndarray) -> float:
-    df, dc = np.diff(r.frame_index).astype(float), np.diff(c)
-    ok = (df > 0) & (dc > 0)
-    return float(np.median(dc[ok] / df[ok]))
-
-
 def run(q: Drive, r: Drive, mask: np.ndarray | None, cfg: Any, coordinate: str = "frames", k: int = 1,
         index: Any = None) -> tuple[dict[str, float], Any, float]:
-    """(R@1, AUC, ...), the SequenceMatch, seconds per query."""
-    from memlog.descriptors.sequence import match_sequences
+    """(R@1, AUC, ...), the SequenceMatch, seconds per query: matched by the drive matcher
+    ``memlog localize`` calls (``match_tables``), in ``coordinate``."""
+    from dataclasses import replace
+
+    from memlog.descriptors.sequence import match_tables
     from memlog.evaluation.metrics import pr_curve
 
-    qc, rc = coords(q, coordinate), coords(r, coordinate)
     t0 = time.perf_counter()
-    res = match_sequences(q.desc, qc, r.desc, rc, cfg, k=k, ref_mask=mask, coordinate=coordinate,
-                          ref_unit=ref_unit(r, coordinate, rc), index=index)
+    res = match_tables(q.table(), r.table(), replace(cfg, coordinate=coordinate), k=k, ref_mask=mask, index=index)
     dt = (time.perf_counter() - t0) / len(q)
     truth = truth_sets(q, r)
     best = res.indices[:, 0]
@@ -267,28 +268,23 @@ def tab_sweep(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
 
 
 def tab_design(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
-    """The choices inside the score (module constants of memlog.descriptors.sequence): which pairs
-    a path is scored on, how the sum is normalised, how many voted places compete for the best."""
-    import memlog.descriptors.sequence as S
+    """The choices inside the score (experimental SequenceConfig settings): which pairs a path is
+    scored on, how the sum is normalised, how many voted places compete for the best."""
     from memlog.descriptors.sequence import SequenceConfig
 
-    saved = (S.PAIRING, S.SCORE_NORM, S.EXACT_PLACES)
     r = refs["base"]
     rows = []
     variants = [("all frames, mean (SeqSLAM)", "all", "mean", 3), ("all frames, sum/sqrt(n)", "all", "sqrt", 3),
                 ("mutual nearest, mean", "mutual", "mean", 3), ("mutual nearest, sum/sqrt(n) (default)", "mutual", "sqrt", 3),
                 ("default, 2 places compete", "mutual", "sqrt", 2), ("default, 6 places compete", "mutual", "sqrt", 6),
                 ("default, 12 places compete", "mutual", "sqrt", 12)]
-    try:
-        for name, pairing, norm, places in variants:
-            S.PAIRING, S.SCORE_NORM, S.EXACT_PLACES = pairing, norm, places
-            cells = []
-            for qn in ("base", "mixed", "double-rate"):
-                for step in (1, 2, 4):
-                    cells.append(f3(run(qs[qn], r, None if step == 1 else every(len(r), step), SequenceConfig())[0]))
-            rows.append([name, *cells])
-    finally:
-        S.PAIRING, S.SCORE_NORM, S.EXACT_PLACES = saved
+    for name, pairing, norm, places in variants:
+        cfg = SequenceConfig(pairing=pairing, score_norm=norm, places=places)
+        cells = []
+        for qn in ("base", "mixed", "double-rate"):
+            for step in (1, 2, 4):
+                cells.append(f3(run(qs[qn], r, None if step == 1 else every(len(r), step), cfg)[0]))
+        rows.append([name, *cells])
     print("\n### Score design: R@1 / AUC (offline, N = 10, K = 3), full / half / quarter map\n")
     print(table(rows, ["score", *[f"{q} {m}" for q in ("base", "mixed", "double-rate") for m in ("full", "half", "quarter")]]))
 
@@ -331,13 +327,15 @@ def synthetic_map(r: Drive, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarr
 def tab_size(qs: dict[str, Drive], refs: dict[str, Drive], sizes: list[int]) -> None:
     from memlog.descriptors.approx import IVFIndex
     from memlog.descriptors.search import Database
-    from memlog.descriptors.sequence import SequenceConfig, match_sequences
+    from memlog.descriptors.sequence import SequenceConfig, match_tables
 
     r = refs["base"]
     rows = []
     for n in sizes:
         desc, rc, real = synthetic_map(r, n)
         db = Database.of(desc)
+        frames = rc.astype(np.int64)
+        map_table = as_table(desc, frames, frames * 100_000_000, frames)
         index = None
         build = 0.0
         for method in ("exact", "ivf"):
@@ -350,8 +348,7 @@ def tab_size(qs: dict[str, Drive], refs: dict[str, Drive], sizes: list[int]) -> 
                 truth = truth_sets(q, r)
                 for name, cfg in (("single", SequenceConfig(length=0)), ("sequence", SequenceConfig())):
                     t0 = time.perf_counter()
-                    res = match_sequences(q.desc, q.frame_index.astype(float), db, rc, cfg, k=1,
-                                          index=index if method == "ivf" else None)
+                    res = match_tables(q.table(), map_table, cfg, k=1, index=index if method == "ivf" else None)
                     dt = (time.perf_counter() - t0) / len(q) * 1e3
                     best = res.indices[:, 0] - real[0]
                     r1 = np.mean([int(b) in s for b, s in zip(best, truth)])
