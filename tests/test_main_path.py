@@ -44,9 +44,10 @@ def _best(matches: Path) -> dict[int, int]:
 
 
 def test_map_then_localize_runs_at_camera_resolution(stromovka: dict[str, Path]) -> None:
-    t = pq.read_table(stromovka["parquet"])
-    meta = json.loads(t.schema.metadata[b"memlog.descriptor"])
-    assert meta["kind"].startswith("dinov2") and meta["whitening"], meta  # what any real camera gets
+    from memlog.outputs.descriptor_table import read_descriptors
+
+    meta = read_descriptors(stromovka["parquet"]).meta
+    assert meta.kind.startswith("dinov2") and meta.whitening, meta  # what any real camera gets
     rows = pq.read_table(stromovka["matches"]).to_pydict()
     assert len(set(rows["query_id"])) == 101
     seq = json.loads(pq.read_table(stromovka["matches"]).schema.metadata[b"memlog.sequence"])
@@ -125,3 +126,42 @@ def test_every_map_has_the_moving_index_its_queries_get(select: str, tmp_path: P
     assert as_query.moving_index is not None
     by_frame = dict(zip(as_query.frame_index.tolist(), as_query.moving_index.tolist()))
     assert [by_frame[int(f)] for f in m.frame_index] == m.moving_index.tolist()
+
+
+def test_localize_matches_every_camera_topic_of_the_query(tmp_path: Path) -> None:
+    """``-t`` is repeatable and defaults to every camera topic: each is matched as a drive of its own."""
+    from tests.conftest import FIXTURES
+
+    log = FIXTURES / "demo.mcap"
+    assert main(["-q", "map", str(log), "-o", str(tmp_path / "m.mcap"), "--descriptor", "thumbnail",
+                 "--keep-fraction", "1"]) == 0
+    assert main(["-q", "localize", str(tmp_path / "m.parquet"), str(log), "-o", str(tmp_path / "all.parquet")]) == 0
+    rows = pq.read_table(tmp_path / "all.parquet").to_pydict()
+    assert set(rows["query_topic"]) == {"/camera/image/compressed", "/camera/image_raw"}
+    assert len(set(zip(rows["query_topic"], rows["query_id"]))) == 16  # 8 frames of each
+    assert main(["-q", "localize", str(tmp_path / "m.parquet"), str(log), "-o", str(tmp_path / "one.parquet"),
+                 "-t", "/camera/image_raw"]) == 0
+    assert set(pq.read_table(tmp_path / "one.parquet").to_pydict()["query_topic"]) == {"/camera/image_raw"}
+
+
+@pytest.mark.parametrize("kind", ["thumbnail", "dinov2-cls", "dinov2-gem", "dinov2-gem-l7", "dinov2-gem-ms"])
+def test_every_descriptor_kind_is_rebuilt_from_what_its_map_records(kind: str) -> None:
+    """localize rebuilds the describer from the map's recorded kind and params (``describer_for``):
+    every registered kind must take back the params it records and describe alike."""
+    import numpy as np
+
+    from memlog.descriptors.base import DescriptorMeta
+    from memlog.descriptors.registry import DESCRIBERS, make_describer
+    from memlog.descriptors.table import DescriptorTable
+    from memlog.steps.localize import describer_for
+
+    assert kind in DESCRIBERS and set(DESCRIBERS) <= {"thumbnail", "dinov2-cls", "dinov2-gem", "dinov2-gem-l7",
+                                                      "dinov2-gem-ms"}  # a new kind is added to this test
+    d = make_describer(kind)
+    meta = DescriptorMeta.from_dict(d.meta().to_dict())
+    table = DescriptorTable(["/cam"], np.array([0]), np.array([0]), np.array([0]), np.zeros((1, d.dim), np.float32),
+                            meta)
+    again = describer_for(table)
+    assert again.meta() == d.meta()
+    img = np.random.default_rng(0).integers(0, 255, (384, 1024, 3), dtype=np.uint8)
+    np.testing.assert_array_equal(again.describe([img]), d.describe([img]))

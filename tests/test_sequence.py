@@ -383,3 +383,44 @@ def test_stops_are_left_out_of_both_drives(places: np.ndarray) -> None:
     np.testing.assert_array_equal(plain.indices, kept.indices)
     with pytest.raises(DescriptorError, match="one flag per query row"):
         match_sequences(q, np.arange(len(q), dtype=float), ref, np.arange(len(ref), dtype=float), standing=[True])
+
+
+def test_the_metadata_says_why_each_frame_was_matched_alone(places: np.ndarray) -> None:
+    """Truthful metadata: a one-frame map cannot hold a window (every row falls back, said so, no
+    sequence query counted); a query standing still throughout falls back because it stood, not
+    because its run was short; the window actually used is recorded."""
+    q = _query(places, np.arange(40, 80))
+    one_map = _table(_unit(places[50:51]), np.array([50]), np.array([5_000_000_000]))
+    drive = _table(q, np.arange(40), np.arange(40) * 100_000_000)
+    res = match_tables(drive, one_map, SequenceConfig(), k=1)
+    assert not res.sequence.any() and set(res.fallback) == {"small-map"}
+    assert res.info["sequence_queries"] == 0 and res.info["single_queries"] == 40
+    assert res.info["fallback_reasons"] == {"small-map": 40} and "map spans fewer" in res.info["fallback"]
+    # a query that stands at one place for 40 frames: its moving index never advances
+    ref = _table(_unit(places), np.arange(N_PLACES), np.arange(N_PLACES) * 100_000_000)
+    standing = _table(_query(places, np.full(40, 60)), np.arange(40), np.arange(40) * 100_000_000)
+    standing.moving_index = np.zeros(40, np.int64)
+    res = match_tables(standing, ref, SequenceConfig(), k=1)
+    assert not res.sequence.any() and set(res.fallback) == {"standing"}
+    assert res.info["standing_rows"] == 39 and res.info["fallback_reasons"] == {"standing": 40}
+    # a moving query: every row a sequence, the window used recorded (a half map: twice the length)
+    moving = match_tables(drive, ref, SequenceConfig(), k=1)
+    assert moving.sequence.all() and moving.info["length_used"] == 10 and set(moving.fallback) == {""}
+    half = match_tables(drive, ref, SequenceConfig(), k=1, ref_mask=np.arange(N_PLACES) % 2 == 0)
+    assert half.info["length_used"] == 20 and half.window.max() == 40  # its 40 frames, cut at the run's ends
+
+
+def test_the_map_is_cut_into_runs_like_the_query() -> None:
+    """A map's runs: a sparse map (every 4th frame kept) is one run, a recording gap or a second
+    camera starts another, and the matcher keeps them apart (their coordinates far from each other)."""
+    rng = np.random.default_rng(2)
+    desc = _unit(rng.normal(size=(50, DIM)))
+    frames = np.arange(0, 200, 4)
+    sparse = _table(desc, frames, frames * 100_000_000)
+    assert drive_runs(sparse)[0].max() == 0
+    gap_ns = frames * 100_000_000 + np.where(frames >= 100, 3_600_000_000_000, 0)  # an hour's gap
+    labels, _ = drive_runs(_table(desc, frames, gap_ns))
+    assert labels.tolist() == [0] * 25 + [1] * 25
+    q = _table(desc[20:30], np.arange(10), np.arange(10) * 400_000_000)
+    assert match_tables(q, _table(desc, frames, gap_ns), SequenceConfig(length=3), k=1).info["map_runs"] == 2
+    assert match_tables(q, sparse, SequenceConfig(length=3), k=1).info["map_runs"] == 1

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +47,7 @@ from memlog.descriptors.whitening import WhitenedDescriber
 from memlog.errors import ConfigError, DescriptorError
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow
+from memlog.io.open import open_log
 from memlog.io.records import ReadReport
 from memlog.outputs.descriptor_table import read_cached, read_descriptors, stored_dtype, write_descriptors
 from memlog.outputs.map_artefact import check_map_pair
@@ -148,11 +149,12 @@ def localize(
         raise ConfigError(f"--coordinate positions: the map {map_descriptors} has no position for every frame "
                           "(use --coordinate frames or time)")
     still = map_still_distance(ref, map_descriptors, cfg.sequence)
-    qt = read_cached(query_descriptors, query_log, ref.meta, cfg.window, still) if query_descriptors else None
+    window = query_window(query_log, cfg.window)
+    qt = read_cached(query_descriptors, query_log, ref.meta, window, still) if query_descriptors else None
     reused = qt is not None
     reports: list[ReadReport] = []
     if qt is None:
-        qt, report = describe_log(query_log, describer_for(ref), cfg.window, still_distance=still)
+        qt, report = describe_log(query_log, describer_for(ref), window, still_distance=still)
         reports.append(report)
         if query_descriptors is not None:
             write_descriptors(query_descriptors, qt)
@@ -204,6 +206,15 @@ def localize(
                                     speed=res.speed)
     return LocalizeResult(out, len(qt), len(ref), cfg.k, timing_map, annotated, reused, reports, search,
                           search_timing, sequence)
+
+
+def query_window(query_log: str | os.PathLike[str], window: FrameWindow) -> FrameWindow:
+    """``window`` with its topics: those asked for, else every camera topic of the query (each
+    is matched as a drive of its own against the map)."""
+    if window.topics is not None:
+        return window
+    with open_log(query_log) as reader:
+        return replace(window, topics=tuple(reader.check_camera_topics(None)))
 
 
 def map_still_distance(ref: DescriptorTable, path: str | os.PathLike[str], cfg: SequenceConfig) -> float:
