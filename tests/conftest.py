@@ -109,3 +109,21 @@ def repeating_log(path: Path) -> None:
     with McapLogWriter(path, profile="ros2") as w:
         for k, i in enumerate(order):
             w.write(w.channel_for(msgs[i].channel), 1_700_000_000_000_000_000 + k * 100_000_000, msgs[i].data)
+
+
+def zstd_bag(dest: Path) -> Path:
+    """A copy of the fixture ROS 2 sqlite bag at ``dest`` with its .db3 compressed as a whole file
+    (zstd, ``compression_mode: FILE``), as ``ros2 bag record --compression-mode file`` writes it."""
+    import shutil
+
+    import zstandard
+
+    shutil.copytree(FIXTURES / "ros2_sqlite", dest)
+    db = next(dest.glob("*.db3"))
+    (dest / (db.name + ".zstd")).write_bytes(zstandard.ZstdCompressor().compress(db.read_bytes()))
+    db.unlink()
+    meta = dest / "metadata.yaml"
+    meta.write_text(meta.read_text().replace(f"- {db.name}", f"- {db.name}.zstd")
+                    .replace("compression_format: ''", "compression_format: zstd")
+                    .replace("compression_mode: ''", "compression_mode: FILE"))
+    return dest

@@ -175,7 +175,7 @@ def _no_mismatched_pair(m: Path, p: Path, old: dict[str, str]) -> str:
     return "old"
 
 
-@pytest.mark.parametrize("where", ["build_table", "descriptor_arrow", "write_arrow", "file_sha256"])
+@pytest.mark.parametrize("where", ["build_table", "descriptor_arrow", "write_arrow", "sha256_file"])
 def test_failed_descriptor_step_leaves_the_old_pair(two_runs: tuple[Path, Path], tmp_path: Path,
                                                      monkeypatch: pytest.MonkeyPatch, where: str) -> None:
     """The descriptor step fails while an earlier MAP.mcap/MAP.parquet pair is in place: before

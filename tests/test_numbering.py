@@ -173,19 +173,12 @@ def test_map_reads_an_unfinished_log_once(tmp_path: Path, monkeypatch: pytest.Mo
 
 
 def test_a_zstd_compressed_ros2_bag_is_decompressed_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import zstandard
 
     import memlog.io.rosbag2.reader as r2
 
-    bag = tmp_path / "zbag"
-    shutil.copytree(FIXTURES / "ros2_sqlite", bag)
-    db = next(bag.glob("*.db3"))
-    (bag / (db.name + ".zstd")).write_bytes(zstandard.ZstdCompressor().compress(db.read_bytes()))
-    db.unlink()
-    meta = bag / "metadata.yaml"
-    meta.write_text(meta.read_text().replace(f"- {db.name}", f"- {db.name}.zstd")
-                    .replace("compression_format: ''", "compression_format: zstd")
-                    .replace("compression_mode: ''", "compression_mode: FILE"))
+    from tests.conftest import zstd_bag
+
+    bag = zstd_bag(tmp_path / "zbag")
     calls = []
     real = r2.Ros2BagLog._unzstd
 

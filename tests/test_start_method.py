@@ -192,24 +192,16 @@ def test_the_temporary_files_of_a_worker_are_removed_when_the_pool_closes(
     """A worker that opens a file-compressed ROS 2 bag decompresses it into a temporary file of its
     own (kept for its next jobs); a spawned worker ends as a process does, removing it (a forked
     one ended without cleaning up, leaving one copy of the bag per worker)."""
-    import shutil
     import tempfile
 
-    import zstandard
 
     temp = tmp_path / "temp"
     temp.mkdir()
     monkeypatch.setenv("TMPDIR", str(temp))
     monkeypatch.setattr(tempfile, "tempdir", str(temp))
-    bag = tmp_path / "zbag"
-    shutil.copytree(FIXTURES / "ros2_sqlite", bag)
-    db = next(bag.glob("*.db3"))
-    (bag / (db.name + ".zstd")).write_bytes(zstandard.ZstdCompressor().compress(db.read_bytes()))
-    db.unlink()
-    meta = bag / "metadata.yaml"
-    meta.write_text(meta.read_text().replace(f"- {db.name}", f"- {db.name}.zstd")
-                    .replace("compression_format: ''", "compression_format: zstd")
-                    .replace("compression_mode: ''", "compression_mode: FILE"))
+    from tests.conftest import zstd_bag
+
+    bag = zstd_bag(tmp_path / "zbag")
     ex = Processes(2)
     try:
         assert list(ex.map_ordered(_count_frames, [(str(bag),)] * 4)) == [4] * 4

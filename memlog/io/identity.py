@@ -8,6 +8,7 @@ the cache.
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,7 +17,16 @@ from typing import Any
 from memlog.errors import ConfigError
 from memlog.io.paths import resolve_path
 
-__all__ = ["log_identity", "same_identity", "log_name", "log_names"]
+__all__ = ["log_identity", "same_identity", "log_name", "log_names", "sha256_file"]
+
+
+def sha256_file(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
+    """Hex sha256 of a file's bytes, read in chunks (maps and model files are hundreds of MB)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
 
 
 def log_identity(path: str | os.PathLike[str]) -> dict[str, Any]:

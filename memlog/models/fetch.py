@@ -11,7 +11,6 @@ user cache directory (``$MEMLOG_CACHE_DIR``, else ``$XDG_CACHE_HOME/memlog``, el
 
 from __future__ import annotations
 
-import hashlib
 import importlib.metadata
 import importlib.util
 import os
@@ -23,6 +22,7 @@ import zipfile
 from pathlib import Path
 
 from memlog.errors import ModelError
+from memlog.io.identity import sha256_file
 from memlog.progress import info
 
 __all__ = ["cache_dir", "sha256_file", "installed_package_file", "cached_package_file", "fetch_package_file"]
@@ -38,13 +38,6 @@ def cache_dir() -> Path:
     return base / "memlog"
 
 
-def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    """Hex sha256 of a file, read in chunks (model files are hundreds of MB)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 def installed_package_file(module: str, dist: str, version: str, relpath: str) -> Path | None:

@@ -52,12 +52,13 @@ import pyarrow.parquet as pq
 from memlog.descriptors.table import DescriptorTable
 from memlog.errors import DescriptorError
 from memlog.io.atomic import AtomicFile, commit_together, same_path
+from memlog.io.identity import sha256_file
 from memlog.io.open import open_log
 from memlog.outputs.descriptor_table import ROW_GROUP_BYTES, descriptor_arrow, write_arrow
 from memlog.outputs.maplog import MapLogWriter
 from memlog.progress import info
 
-__all__ = ["MapPairError", "check_map_pair", "write_map", "descriptor_content_sha256", "file_sha256",
+__all__ = ["MapPairError", "check_map_pair", "write_map", "descriptor_content_sha256",
            "LINK_RECORD", "MAP_SHA256", "MAP_FILE"]
 
 SCHEME = "1"
@@ -75,13 +76,6 @@ class MapPairError(DescriptorError):
     """A descriptor table does not belong to the map it is used with (or cannot be checked)."""
 
 
-def file_sha256(path: PathLike, chunk: int = 1 << 20) -> str:
-    """Hex sha256 of the bytes of the file at ``path``."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _frame(h: "hashlib._Hash", data: bytes) -> None:
@@ -202,7 +196,7 @@ def _names_map(path: Path, map_path: Path) -> bool:
     if rec[1] == map_path.name:
         return True
     try:
-        return map_path.is_file() and file_sha256(map_path) == rec[0]
+        return map_path.is_file() and sha256_file(map_path) == rec[0]
     except OSError:
         return False
 
@@ -233,7 +227,7 @@ def write_map(writer: MapLogWriter, metadata: Mapping[str, str], descriptors: Pa
                     and c not in stale and _names_map(c, writer.path):
                 stale.append(c)
         if arrow is not None and dpath is not None:
-            link = {MAP_SHA256: file_sha256(parts[0].tmp).encode(), MAP_FILE: writer.path.name.encode()}
+            link = {MAP_SHA256: sha256_file(parts[0].tmp).encode(), MAP_FILE: writer.path.name.encode()}
             arrow = arrow.replace_schema_metadata({**(arrow.schema.metadata or {}), **link})
             parts.append(AtomicFile(dpath))
             try:
@@ -279,7 +273,7 @@ def check_map_pair(map_mcap: PathLike, parquet: PathLike) -> None:
     if not link.get("descriptors_sha256"):
         raise MapPairError(f"{p} does not belong to the map {m}: that map was written without descriptors "
                            f"({p} was written for a map {map_name or '?'} of sha256 {want_map[:12]}…)")
-    have_map = file_sha256(m)
+    have_map = sha256_file(m)
     if have_map != want_map:
         raise MapPairError(
             f"{p} does not belong to the map {m}: it was written for a map {map_name or '?'} of sha256 "
