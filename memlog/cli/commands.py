@@ -470,7 +470,8 @@ def add_sequence_flags(p: Any) -> None:
                    help="use only past frames: the N frames before each query frame and the frame itself (a robot "
                         "localizing live)")
     g.add_argument("--speeds", type=speed_range, metavar="MIN:MAX",
-                   help="relative speeds searched, map coordinate per query coordinate (default 0:3; positions: "
+                   help="relative speeds searched, map coordinate per query coordinate (default: 1/3 to 3 times the "
+                        "drives' pace, i.e. 1 at one frame rate, else the ratio of their frame intervals; positions: "
                         "0.8:1.25)")
     g.add_argument("--sequence-k", type=positive_int, metavar="K",
                    help="candidates per query frame from the single-frame search that vote for places (default "

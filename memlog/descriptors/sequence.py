@@ -31,7 +31,12 @@ nothing matches, whatever the number of pairs, so paths with fewer pairs do not 
 
 * ``constant`` (SeqSLAM): a straight line, coordinate ``x + v (c_t - c_i)`` with the relative
   speed ``v`` (map coordinate per query coordinate) searched over ``speeds`` in steps of
-  ``speed_step`` (default: the step that moves the window's far end by one reference frame);
+  ``speed_step`` (default: the step that moves the window's far end by one reference frame).
+  The default range is a third to three times the drives' *pace* (the speed of a query driven
+  at the map's pace: 1 at one frame rate, the ratio of the frame intervals otherwise), with a
+  *speed prior*: a path's score (and its vote) loses ``speed_prior`` per doubling or halving of
+  its speed against the pace. There is no standing hypothesis (speed 0): stops are left out of
+  both drives ("Stops" below), so a standing path could only fit noise;
 * ``dp``: a monotone path found by dynamic programming on a grid of one reference frame, each
   step between consecutive window frames moving ``round(vmin d / u)`` to ``round(vmax d / u)``
   grid units (``d``: the query's coordinate step, ``u``: the reference's frame spacing), so the
@@ -54,32 +59,35 @@ map frame nearest its centre. More places competing gave more false maxima (R@1 
 ranks beyond come from the next voted places. The cost per query does not depend on the map's
 size beyond the candidate search.
 
-**Confidence.** The margin: the best place's score minus the second best's, the second best
-being outside ``exclude`` reference frames of the best (a different place, for ``exclude`` the
-truth window's half-width). As a confidence it beat the score itself (AUC-PR 0.65 against 0.48
-on Nordland).
+**Confidence, one scale for every row.** The margin: the best place's score minus the second
+best's, the second best being outside ``exclude`` reference frames of the best (a different
+place, for ``exclude`` the truth window's half-width). A frame matched alone is a path of one
+pair: its score is its ``z`` and its margin is taken over the best candidate of another place,
+so sequence and single-frame rows rank on one scale.
 
 **Stops.** A camera standing still (at a station, a junction, a red light) sees one place
 for many frames. Along the frame index such a stop stretches one place over as many frames as it
-lasted, and a window of frames around it covers little drive. With ``stops`` (the default) and
-the ``frames`` coordinate, each drive runs along its *moving index*
-(:attr:`DescriptorTable.moving_index`: the frame index minus the frames spent standing, found
-from the images by :func:`memlog.selection.segment.still_rows`; tables without it keep the frame
-index), and a query frame that stood still since its run's previous frame is not matched on its
-own: it takes the result of its stop's first frame (``standing``; ``info["standing_rows"]``).
-Measured on Nordland variants (winter against summer drives with stations, added stops, crawls
-and 2-3x stretches; ``benchmarks/drive_maps.py``), R@1 of the full map 0.613 -> 0.631 on the
-mixed drive and 0.594 -> 0.604 on the recorded one, of the default half map 0.590 -> 0.616 and
-0.574 -> 0.606, within 0.02 of the full map on all four drives. ``time`` and ``positions`` are
-left as they are (a stop adds nothing to the distance travelled).
+lasted, and a window of frames around it covers little drive. With ``stops`` (the default), each
+drive runs along its *moving index* in the ``frames`` coordinate
+(:attr:`DescriptorTable.moving_index`: the frame index minus the frames spent standing; tables
+without it keep the frame index) and along its moving time in the ``time`` coordinate (the time
+spent standing left out); ``positions`` add nothing while standing anyway. A query frame that
+stood still since its run's previous frame is not matched on its own: it takes the result of its
+stop's first frame (``standing``; ``info["standing_rows"]``). The README's matcher tables
+(``benchmarks/matcher_defaults.py``) give what this and the other defaults were measured on.
 
-**Runs and the fallback.** A query is cut into runs of rows whose coordinates do not decrease
+**Runs and the fallback.** Both drives are cut into runs (:func:`drive_runs`: recording gaps,
+frames out of order, cameras); a map's runs lie far apart in coordinate, so no path crosses from
+one to the next. A query is cut into runs of rows whose coordinates do not decrease
 (and, for logs, whose stamps increase with gaps below a limit: :func:`drive_runs`); windows never
 cross a run boundary and are cut at its ends. Offline, a run shorter than ``length + 1`` frames
 (a single image, a log of unordered frames) is matched frame by frame; causal, a frame is matched
 as a sequence once ``length`` frames of its run precede it (decided from the past alone), so the
-first ``length`` frames of every run are single frames. The result says so
-(``SequenceMatch.sequence``, ``info["fallback"]``). ``length = 0`` is single-frame matching.
+first ``length`` frames of every run are single frames. A map spanning fewer reference frames
+than the window, and a query that stood still throughout its run, are matched frame by frame
+too. The result says so, row by row (``SequenceMatch.sequence``, ``SequenceMatch.fallback``: a
+key of :data:`FALLBACK_REASONS`) and in total (``info["fallback"]``, ``info["fallback_reasons"]``).
+``length = 0`` is single-frame matching.
 
 **Batching.** Candidates come from :func:`memlog.descriptors.search.match` (independent of its
 blocking), the statistics and the final scores are computed per query from its own window, and
@@ -152,9 +160,9 @@ class SequenceConfig:
 
     ``length``: frames before (and, unless ``causal``, after) each query frame; 0 = single
     frames. ``speeds``: (min, max) relative speed, map coordinate per query coordinate (None:
-    0..3 for frames and time, 0.8..1.25 for positions); ``speed_step`` (None: the step that
-    moves the window's far end by one reference frame). ``candidates``: map frames per query
-    frame from the single-frame search that vote (default 3). ``coordinate``: auto | frames | time |
+    1/3..3 times the drives' pace for frames and time, 0.8..1.25 for positions); ``speed_step``
+    (None: the step that moves the window's far end by one reference frame). ``candidates``: map
+    frames per query frame from the single-frame search that vote. ``coordinate``: auto | frames | time |
     positions. ``path``: constant | dp. ``max_gap_s``: a stamp gap above this cuts the query
     into runs (None: :data:`GAP_FACTOR` times the median frame interval). ``exclude``:
     half-width, in reference frames, of the window around the best place inside which no
