@@ -123,7 +123,8 @@ def test_localize_ivf_end_to_end(nordland: tuple[DescriptorTable, DescriptorTabl
                    LocalizeConfig(k=5, search=SearchConfig("ivf", nlist=32, nprobe=32)))
     assert exact.search == {"method": "exact", "asked": "exact", "map_dtype": "float16"}
     assert ivf.search["method"] == "ivf" and ivf.search["nlist"] == 32 and ivf.search["nprobe"] == 32
-    assert ivf.search["rerank"] == 40 and ivf.search["build_seconds"] > 0
+    # the sequence matcher asks for its candidates + 1 (10 + 1) neighbours: max(40, 4 k) are re-scored
+    assert ivf.search["rerank"] == 44 and ivf.search["build_seconds"] > 0
     assert exact.search_timing is not None and set(exact.search_timing) == {"batched", "single"}
     assert ivf.search_timing is None and ivf.timing_map.n_queries == 800 and ivf.timing_map.n_refs == 800
     a, b = pq.read_table(tmp_path / "exact.parquet"), pq.read_table(tmp_path / "ivf.parquet")

@@ -926,8 +926,7 @@ def match_sequences(
     scores = np.full((n_q, k), -np.inf)
     indices[:, :kk] = ci[:, :kk]
     scores[:, :kk] = z[:, :kk]
-    unit_excl = cfg.exclude * (float(ref_unit) if ref_unit else _median_step(rc_all))
-    second = _second_place(ci, rc_all, unit_excl)
+    second = _second_place(ci, rc_all, cfg.exclude * unit)
     rows_q = np.arange(n_q)
     with np.errstate(invalid="ignore"):
         margin = np.where(second >= 0, z[:, 0] - z[rows_q, np.maximum(second, 0)], np.nan)
