@@ -286,6 +286,7 @@ class SequenceMatch:
     ratio: F64 = field(default_factory=lambda: np.zeros(0))
     fallback: npt.NDArray[np.str_] = field(default_factory=lambda: np.zeros(0, dtype=str))
     info: dict[str, Any] = field(default_factory=dict)
+    rerank: F64 | None = None
 
     @property
     def confidence(self) -> F64:
@@ -300,7 +301,8 @@ class SequenceMatch:
         """The result of query ``rows`` (in that order), same info."""
         r = np.asarray(rows, dtype=np.int64)
         return SequenceMatch(self.indices[r], self.scores[r], self.similarities[r], self.margin[r], self.speed[r],
-                             self.window[r], self.sequence[r], self.ratio[r], self.fallback[r], self.info)
+                             self.window[r], self.sequence[r], self.ratio[r], self.fallback[r], self.info,
+                             None if self.rerank is None else self.rerank[r])
 
 
 # -- coordinates and runs of descriptor tables -------------------------------------------------------
@@ -1150,3 +1152,77 @@ def match_tables(
     res.info["map_runs"] = int(ref_runs.max()) + 1 if len(ref_runs) else 0
     res.info.setdefault("standing_rows", 0)
     return res
+
+
+RERANK_BLOCK = 64  # query rows re-ranked per block (their pairs scored once each)
+
+
+def rerank_by_patches(res: SequenceMatch, q_desc: F32, r_desc: F32, q_patches: npt.NDArray[Any],
+                      r_patches: npt.NDArray[Any], qc: F64, rc: F64, map_rows: I64, labels: I64,
+                      cfg: SequenceConfig, k: int, unit: float) -> SequenceMatch:
+    """Re-rank each query's places by patch features (:mod:`memlog.descriptors.patches`).
+
+    A place's patch score is the mean :func:`~memlog.descriptors.patches.pair_scores` of the
+    window's query frames against the map frames aligned with them along the place's path (the
+    query's best speed; a frame matched alone: itself against the place). The places are ranked
+    by it (ties keep their order), the ``k`` best kept; ``margin`` and the confidence become the
+    best patch score minus the best of another place (one scale for every row), ``ratio`` is
+    taken to the new second place. ``rc``: every reference row's coordinate; ``map_rows``: the
+    rows that make the map; ``labels``: the query's runs.
+    """
+    from memlog.descriptors.patches import pair_scores
+
+    n_q, n_c = res.indices.shape
+    n_ref = max(1, len(rc))
+    mr = map_rows[np.argsort(rc[map_rows], kind="stable")]
+    mc = rc[mr]
+    if not n_q or not len(mr):
+        return res
+    spacing = _median_step(mc)
+    lo, hi = _run_bounds(labels, qc)
+    length = int(res.info.get("length_used", cfg.length))
+    offs = np.arange(-length, 1 if cfg.causal else length + 1, dtype=np.int64)
+    cand = res.indices
+    patch = np.full((n_q, n_c), np.nan)
+    for a in range(0, n_q, RERANK_BLOCK):
+        rows = np.arange(a, min(n_q, a + RERANK_BLOCK))
+        t = rows[:, None] + offs[None, :]
+        seq = res.sequence[rows][:, None]
+        valid = ((t >= lo[rows][:, None]) & (t < hi[rows][:, None]) & seq) | (offs[None, :] == 0)
+        t = np.where(valid, t, rows[:, None])
+        c = cand[rows]
+        v = np.where(res.sequence[rows], res.speed[rows], 0.0)
+        pred = rc[np.maximum(c, 0)][:, :, None] + v[:, None, None] * (qc[t] - qc[rows][:, None])[:, None, :]
+        near = mr[_nearest(mc, pred)]
+        use = (valid[:, None, :] & (c >= 0)[:, :, None] & (pred >= mc[0] - spacing / 2)
+               & (pred <= mc[-1] + spacing / 2))
+        tq = np.broadcast_to(t[:, None, :], pred.shape)[use]
+        key = tq * n_ref + near[use]
+        uk, inv = np.unique(key, return_inverse=True)
+        total = np.zeros(pred.shape)
+        total[use] = pair_scores(q_patches, r_patches, uk // n_ref, uk % n_ref)[inv]
+        count = use.sum(axis=2)
+        patch[rows] = np.where(c >= 0, total.sum(axis=2) / np.maximum(count, 1), np.nan)
+    order = np.argsort(np.where(cand >= 0, -np.nan_to_num(patch, nan=0.0), np.inf), axis=1, kind="stable")
+    idx = np.take_along_axis(cand, order, axis=1)
+    ps = np.take_along_axis(patch, order, axis=1)
+    excl = cfg.exclude * unit
+    other = (idx[:, 1:] >= 0) & (np.abs(rc[np.maximum(idx[:, 1:], 0)] - rc[np.maximum(idx[:, :1], 0)]) > excl)
+    has = other.any(axis=1)
+    second_col = np.where(has, np.argmax(other, axis=1) + 1, 0)
+    rows_q = np.arange(n_q)
+    margin = np.where(has & (idx[:, 0] >= 0), ps[:, 0] - ps[rows_q, second_col], np.nan)
+    second = np.where(has, idx[rows_q, second_col], -1)
+    ratio = np.full(n_q, np.nan)
+    ok = (idx[:, 0] >= 0) & (second >= 0)
+    if ok.any():
+        qd = q_desc[ok].astype(np.float64)
+        s1 = np.einsum("ij,ij->i", qd, r_desc[idx[ok, 0]].astype(np.float64))
+        s2 = np.einsum("ij,ij->i", qd, r_desc[second[ok]].astype(np.float64))
+        d1, d2 = np.sqrt(np.maximum(0.0, 2 - 2 * s1)), np.sqrt(np.maximum(0.0, 2 - 2 * s2))
+        ratio[ok] = np.where(d2 > 0, d1 / np.where(d2 > 0, d2, 1.0), 1.0)
+    kk = min(k, n_c)
+    info = {**res.info, "patch_rerank": n_c}  # the places re-ranked
+    return SequenceMatch(idx[:, :kk], np.take_along_axis(res.scores, order, axis=1)[:, :kk],
+                         np.take_along_axis(res.similarities, order, axis=1)[:, :kk], margin, res.speed, res.window,
+                         res.sequence, ratio, res.fallback, info, ps[:, :kk])
