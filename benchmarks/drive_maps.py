@@ -248,7 +248,7 @@ def pooled_r1(results: list[tuple[np.ndarray, float, np.ndarray]]) -> float:
 def tab_maps(queries: dict[str, Drive], refs: dict[str, Drive], views: dict[str, np.ndarray], scores: Any,
              fracs: list[float], names: list[str]) -> None:
     from memlog.selection import random_masks, uniform_mask
-    from memlog.selection.segment import still_rows
+    from memlog.scoring.motion import still_rows
 
     for mname in names:
         seq = matchers()[mname]
@@ -341,7 +341,7 @@ def tab_candidates(queries: dict[str, Drive], refs: dict[str, Drive], views: dic
 
 
 def tab_stillness(refs: dict[str, Drive], views: dict[str, np.ndarray]) -> None:
-    from memlog.selection.segment import still_rows
+    from memlog.scoring.motion import still_rows
 
     rows = []
     for rname, r in refs.items():

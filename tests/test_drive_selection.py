@@ -77,7 +77,7 @@ def test_stops_are_found_from_the_images_not_from_time() -> None:
     """A slow crawl (1 px per frame) is not a stop; a standing camera with sensor noise is."""
     strip = _strip(600)
     x = np.concatenate([np.arange(0, 100, 1.0), np.full(30, 100.0), np.arange(101, 201, 1.0)])
-    from memlog.selection.segment import still_rows
+    from memlog.scoring.motion import still_rows
 
     still = still_rows(_drive(strip, x), SEGMENT_DEFAULTS.still_distance)
     want = np.zeros(len(x), bool)
@@ -93,7 +93,7 @@ def test_a_crawl_below_the_noise_per_frame_is_drive_not_a_stop(px_per_frame: flo
     advances along it: at least once per 2 px travelled, evenly in the strip coordinate, while a
     60-frame stop of sensor noise only, on the same drive, keeps one value."""
     from memlog.scoring.scorer import view_steps
-    from memlog.selection.segment import moving_index, still_rows
+    from memlog.scoring.motion import moving_index, still_rows
 
     strip = _strip(900)
     crawl = 100.0 + np.arange(200) * px_per_frame
@@ -136,7 +136,7 @@ def test_moving_index_counts_only_the_frames_that_moved() -> None:
     stride of 2 (frame indices 0, 2, 4, ...) with two stops; the expectation counts, in the strip
     coordinate, the frames whose position equals their predecessor's (each stands for 2 frames)."""
     from memlog.errors import SelectionError
-    from memlog.selection.segment import moving_index, still_rows
+    from memlog.scoring.motion import moving_index, still_rows
 
     strip = _strip(900)
     x = np.concatenate([np.arange(0, 120, 4.0), np.full(15, 120.0), np.arange(124, 300, 4.0), np.full(9, 300.0),
@@ -162,7 +162,8 @@ def test_the_map_and_a_described_query_carry_the_moving_index(tmp_path, monkeypa
     from memlog.descriptors.registry import make_describer
     from memlog.outputs.descriptor_table import read_descriptors
     from memlog.selection.config import SelectionConfig
-    from memlog.selection.segment import SEGMENT_DEFAULTS, stop_rule
+    from memlog.scoring.motion import stop_rule
+    from memlog.selection.segment import SEGMENT_DEFAULTS
     from memlog.steps.map import MapConfig, make_map
     from tests.conftest import repeating_log
     from tests.stand_in import use_stand_in

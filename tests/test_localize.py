@@ -416,7 +416,8 @@ def test_the_query_s_stops_are_found_as_the_map_s(nordland_maps: dict[str, Path]
     from memlog.descriptors.table import DescriptorTable
     from memlog.descriptors.whitening import WhitenedDescriber
     from memlog.outputs.descriptor_table import read_descriptors, write_descriptors
-    from memlog.selection.segment import SEGMENT_DEFAULTS, stop_rule
+    from memlog.scoring.motion import stop_rule
+    from memlog.selection.segment import SEGMENT_DEFAULTS
     from memlog.steps.localize import localize
     from tests.conftest import shared
 

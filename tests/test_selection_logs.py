@@ -45,13 +45,18 @@ def test_segments_by_distance_keep_one_frame_per_stretch(tmp_path: Path) -> None
     kept = _kept(tmp_path / "m.mcap", COMP)
     info = res.selections[COMP].info
     assert info["by"] == "distance" and info["n_segments"] == 4
-    # independent check: travelled distance of each frame from the GPS track, 4 equal stretches
+    # independent check: travelled distance of each frame from the GPS track, 4 equal stretches;
+    # the GPS stands at fixes 3-5 (fixtures/make_fixtures.py positions()), so frames 4 and 5 are a
+    # stop (found from the log's GNSS: memlog.scoring.motion) and their steps (GNSS jitter) add nothing
+    assert info["still_frames"] == 2 and info["stops_from"] == {"source": "gnss", "topic": "/gps/fix"}
     with open_log(DEMO) as log:
         track = read_track(log)
         t = [f.log_time_ns for f in log.frames([COMP])]
     assert track is not None
     xy = track.at(t)[:, :2]
-    d = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    step[[3, 4]] = 0.0  # into frames 4 and 5
+    d = np.concatenate([[0.0], np.cumsum(step)])
     stretch = np.minimum((d / (d[-1] / 4)).astype(int), 3)
     assert info["path_length_m"] == pytest.approx(d[-1], rel=1e-6)
     assert len(set(stretch[kept])) == len(kept), "at most one kept frame per stretch"
@@ -66,8 +71,10 @@ def test_segments_by_time(tmp_path: Path) -> None:
                     candidates="all")  # the exact choice: MS decides
     make_map(DEMO, tmp_path / "m.mcap", cfg, scores=recs)
     kept = _kept(tmp_path / "m.mcap", COMP)
-    # frames every 0.1 s: windows [0,0.4) and [0.4,0.8): the best (latest, highest MS) of each
-    assert kept == [3, 7]
+    # frames every 0.1 s; the GPS stands at frames 3-5 (a stop, from the log's GNSS: its seconds add
+    # nothing), so the time coordinate is 0, .1, .2, .3, .3, .3, .4, .5: windows [0,0.4) (frames 0-5)
+    # and [0.4,0.8) (6, 7): the best (latest, highest MS) of each
+    assert kept == [5, 7]
 
 
 def test_segments_by_view_change_and_gap(tmp_path: Path) -> None:

@@ -277,7 +277,7 @@ def test_shared_data_tests_skip_on_a_clone_and_fail_in_ci(tmp_path: Path) -> Non
 def test_evaluate_metrics_describe_the_map_written(tmp_path: Path) -> None:
     """One selection: the memorable variant's frames are exactly the map's frames (with --dedup and
     a descriptor other than the one dedup uses)."""
-    from memlog.selection.segment import stop_rule
+    from memlog.scoring.motion import stop_rule
     from memlog.steps.evaluate import EvaluateConfig, evaluate
 
     truth = tmp_path / "t.json"
@@ -290,10 +290,12 @@ def test_evaluate_metrics_describe_the_map_written(tmp_path: Path) -> None:
         select=SelectionConfig(keep_fraction=0.5, dedup=0.3, still_distance=0.002), reference_topic=COMP,
         query_topic=RAW, seeds=2, report=False), truth=truth)
     kept = read_descriptors(tmp_path / "out" / "map.parquet").frame_index
-    # the map's stops and both drives' (what the matching runs along) are found with the same still_distance
+    # the map's stops and both drives' (what the matching runs along) are found alike: from the log's
+    # GNSS fixes (they know every frame), with the same still_distance
     tables = [tmp_path / "out" / "map.parquet", *sorted((tmp_path / "out").glob("reference.*.parquet")),
               *sorted((tmp_path / "out").glob("query.*.parquet"))]
-    assert len(tables) == 3 and all(read_descriptors(p).extra["stops"] == stop_rule(0.002) for p in tables)
+    assert len(tables) == 3 and all(read_descriptors(p).extra["stops"] == stop_rule(0.002, "gnss", "/gps/fix")
+                                    for p in tables)
     assert res["memorable"]["frames"] == len(kept)
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
     assert sorted(kept.tolist()) == saved["memorable"]["kept_indices"]

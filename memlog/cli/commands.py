@@ -489,7 +489,8 @@ def add_sequence_flags(p: Any) -> None:
                         "one; default: 10 x the median frame interval)")
     g.add_argument("--keep-stops", action="store_true",
                    help="match along the frame index as recorded, every frame on its own (default: where the camera "
-                        "stood still, seen from the images, the stop counts as one place and its frames take the "
+                        "stood still (from the log's odometry, twist or GNSS when it knows every frame, else from the "
+                        "images), the stop counts as one place and its frames take the "
                         "match of its first frame; the query's stops are found as the map recorded its own; "
                         "frames coordinate only)")
 

@@ -23,11 +23,11 @@ from memlog.io.base import FrameWindow, LogReader
 from memlog.io.frame import Frame
 from memlog.io.identity import log_identity
 from memlog.io.open import open_log
-from memlog.io.positions import PositionTrack, read_track
+from memlog.io.positions import MotionTrack, PositionTrack, read_tracks
 from memlog.io.records import ReadReport
 from memlog.progress import progress
+from memlog.scoring.motion import STILL_DISTANCE, Stops, find_stops, frame_motion, moving_index, stop_rule, stops_record
 from memlog.scoring.scorer import view_vector
-from memlog.selection.segment import SEGMENT_DEFAULTS, moving_index_of_views, stop_rule
 
 __all__ = ["describe_frames", "build_table", "describe_log", "moving_indices", "ReferenceDescribing"]
 
@@ -70,19 +70,26 @@ def describe_frames(
 
 
 def moving_indices(frames: Sequence[Frame], views: np.ndarray | Sequence[np.ndarray],
-                   still_distance: float = SEGMENT_DEFAULTS.still_distance) -> np.ndarray:
+                   still_distance: float = STILL_DISTANCE,
+                   motion: Sequence[MotionTrack] = ()) -> tuple[np.ndarray, dict[str, Any]]:
     """Each frame's index with its topic's stops left out
-    (:func:`memlog.selection.segment.moving_index`), from the frames' view vectors (``views``,
-    one per frame; each topic's frames in drive order, consecutive as far as they were read) and
-    ``still_distance`` (:func:`~memlog.selection.segment.still_rows`)."""
+    (:func:`memlog.scoring.motion.moving_index`), and the record of how the stops were found
+    (:func:`~memlog.scoring.motion.stops_record`, the table's ``extra["stops"]``): each topic's
+    stops are :func:`~memlog.scoring.motion.find_stops`' from the log's ``motion``
+    (:func:`memlog.io.positions.read_motion`) when it knows every frame of the topic, else from
+    the frames' view vectors (``views``, one per frame) with ``still_distance``; each topic's frames
+    in drive order, consecutive as far as they were read."""
     v = np.asarray(views, dtype=np.float64).reshape(len(frames), -1)
     index = np.array([f.index for f in frames], dtype=np.int64)
+    t_ns = np.array([f.log_time_ns for f in frames], dtype=np.int64)
     topics = np.array([f.topic for f in frames], dtype=object)
     out = index.copy()
+    found: dict[str, Stops] = {}
     for t in dict.fromkeys(topics.tolist()):
         rows = np.flatnonzero(topics == t)
-        out[rows] = moving_index_of_views(index[rows], v[rows], still_distance)
-    return out
+        found[t] = find_stops(len(rows), v[rows], frame_motion(motion, t_ns[rows]), still_distance)
+        out[rows] = moving_index(index[rows], found[t].still)
+    return out, stops_record(still_distance, found)
 
 
 def build_table(
@@ -95,13 +102,13 @@ def build_table(
     extra: dict[str, Any] | None = None,
     whitening: Whitening | None = None,
     moving: np.ndarray | None = None,
-    still_distance: float = SEGMENT_DEFAULTS.still_distance,
+    stops: Mapping[str, Any] | None = None,
 ) -> DescriptorTable:
     """A DescriptorTable of described frames, with their scores and interpolated positions.
     With ``whitening``, ``descriptors`` are already whitened by it and the table carries it;
-    ``moving``: the frames' :func:`moving_indices` (the table's ``moving_index``), its stops
-    found with ``still_distance`` (recorded as ``extra["stops"]``,
-    :func:`~memlog.selection.segment.stop_rule`)."""
+    ``moving``: the frames' :func:`moving_indices` (the table's ``moving_index``), ``stops`` how
+    its stops were found (recorded as ``extra["stops"]``; default
+    :func:`~memlog.scoring.motion.stop_rule`: by the images with the default ``still_distance``)."""
     def score(name: str) -> np.ndarray:
         if scores is None:
             return np.full(len(frames), np.nan)
@@ -125,7 +132,7 @@ def build_table(
     if track is not None:
         ex["position_topic"] = track.topic
     if moving is not None:
-        ex["stops"] = stop_rule(still_distance)
+        ex["stops"] = dict(stops) if stops is not None else stop_rule()
     return DescriptorTable(
         topic=[f.topic for f in frames],
         frame_index=np.array([f.index for f in frames], dtype=np.int64),
@@ -147,27 +154,28 @@ def describe_log(
     window: FrameWindow | None = None,
     *,
     scores: Mapping[str, Mapping[int, Mapping[str, Any]]] | None = None,
-    still_distance: float = SEGMENT_DEFAULTS.still_distance,
+    still_distance: float = STILL_DISTANCE,
 ) -> tuple[DescriptorTable, ReadReport]:
     """Descriptors of the frames of ``window`` (default: the first camera topic, every frame),
     with positions when the log has them, and the read report (damage found); the moving index
-    with stops found with ``still_distance``. The table's ``extra`` records the log, its
-    identity, the window and how stops were found."""
+    with stops found from the log's motion, else with ``still_distance`` from the images
+    (:func:`moving_indices`). The table's ``extra`` records the log, its identity, the window and
+    how stops were found."""
     window = window or FrameWindow()
     with open_log(log) as reader:
         cams = reader.check_camera_topics(window.topics)
         if window.topics is None:
             cams = cams[:1]  # one camera per drive unless asked
         w = FrameWindow(tuple(cams), window.start_ns, window.end_ns, window.stride)
-        track = read_track(reader)
+        track, motion = read_tracks(reader)
         frames = progress(reader.frames(w.topics, w.start_ns, w.end_ns, w.stride), total=reader.count_frames(w),
                           desc="describe", unit="frame")
         views: list[np.ndarray] = []
         kept, desc = describe_frames(frames, describer, reader, views=views)
         extra = {"log": str(reader.path), "log_identity": log_identity(log), "window": w.to_dict()}
+        moving, stops = moving_indices(kept, views, still_distance, motion)
         return build_table(kept, desc, describer, scores=scores, track=track, extra=extra,
-                           moving=moving_indices(kept, views, still_distance),
-                           still_distance=still_distance), reader.report
+                           moving=moving, stops=stops), reader.report
 
 
 class ReferenceDescribing:

@@ -37,7 +37,8 @@ class DescriptorTable:
     ``whitening`` is the transform the descriptors were whitened with when the table carries it
     (a map does; a query table records only its sha256 in ``meta.whitening``).
     ``moving_index``: each frame's index with the drive's stops left out
-    (:func:`memlog.selection.segment.moving_index`: a standing camera's frames share one value),
+    (:func:`memlog.scoring.motion.moving_index`: a standing camera's frames share one value; the
+    stops from the log's motion, else its images, :func:`memlog.scoring.motion.find_stops`),
     None when it is not known (the table was written before it was recorded, or frames were
     described out of order); sequence matching runs along it.
     """

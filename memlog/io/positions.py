@@ -1,5 +1,7 @@
 """Positions of the platform from a log (NavSatFix, Foxglove LocationFix, poses, odometry),
-interpolated to frame times, in local metres.
+interpolated to frame times, in local metres; and the log's own motion (:func:`read_motion`:
+odometry, poses, twists, GNSS), which decides where the drive stood still
+(:mod:`memlog.scoring.motion`).
 
 GNSS fixes are projected to a local east/north frame around the first fix
 (equirectangular: accurate to centimetres over the few kilometres of a drive); poses and
@@ -21,7 +23,8 @@ from memlog.io.base import LogReader
 from memlog.io.camera import normalize_msgtype
 from memlog.io.decoders import make_deserializer
 
-__all__ = ["PositionTrack", "position_topics", "read_track", "EARTH_RADIUS_M", "geo_origin", "geo_to_local", "local_to_geo"]
+__all__ = ["PositionTrack", "position_topics", "read_track", "EARTH_RADIUS_M", "geo_origin", "geo_to_local", "local_to_geo",
+           "MotionTrack", "MOTION_KINDS", "motion_topics", "read_motion", "read_tracks", "interpolate"]
 
 EARTH_RADIUS_M = 6_371_008.8
 _GNSS = {"sensor_msgs/NavSatFix", "foxglove.LocationFix", "foxglove_msgs/LocationFix"}
@@ -29,6 +32,35 @@ _POSE = {
     "geometry_msgs/PoseStamped", "geometry_msgs/PoseWithCovarianceStamped", "nav_msgs/Odometry",
     "geometry_msgs/TransformStamped", "foxglove.PoseInFrame", "foxglove_msgs/PoseInFrame",
 }
+#: Measured velocities (wheel speed, a GNSS receiver's velocity: nmea_navsat_driver ``vel``, ublox
+#: ``fix_velocity``). A plain ``geometry_msgs/Twist`` is left out: it is what ``cmd_vel`` carries,
+#: a command, not what the vehicle did.
+_TWIST = {"geometry_msgs/TwistStamped", "geometry_msgs/TwistWithCovarianceStamped"}
+
+
+def interpolate(t_ns: npt.ArrayLike, values: npt.ArrayLike, at_ns: Iterable[int],
+                max_gap_s: float) -> npt.NDArray[np.float64]:
+    """``values`` (one row per sample at ``t_ns``, increasing; [M] or [M, k]) linearly
+    interpolated at ``at_ns``: held at the ends within ``max_gap_s`` of the first/last sample,
+    NaN further out and inside a gap between samples longer than ``max_gap_s``."""
+    ts = np.asarray(t_ns, dtype=np.int64)
+    v = np.asarray(values, dtype=np.float64)
+    flat = v.ndim == 1
+    v2 = v.reshape(len(v), -1)
+    t = np.asarray(list(at_ns), dtype=np.int64)
+    out = np.full((len(t), v2.shape[1]), np.nan)
+    if len(ts) == 1:
+        out[np.abs(t - ts[0]) <= max_gap_s * 1e9] = v2[0]
+    elif len(ts) > 1:
+        tt = (ts - ts[0]).astype(np.float64)
+        q = (t - ts[0]).astype(np.float64)
+        for k in range(v2.shape[1]):
+            out[:, k] = np.interp(q, tt, v2[:, k])  # ends held within max_gap_s, NaN beyond
+        out[(q < -max_gap_s * 1e9) | (q > tt[-1] + max_gap_s * 1e9)] = np.nan
+        # neighbours too far apart in time: unknown
+        j = np.clip(np.searchsorted(tt, q), 1, len(tt) - 1)
+        out[(tt[j] - tt[j - 1]) > max_gap_s * 1e9] = np.nan
+    return out[:, 0] if flat else out
 
 
 def geo_origin(latlon: npt.ArrayLike) -> tuple[float, float]:
@@ -76,24 +108,7 @@ class PositionTrack:
     def at(self, t_ns: Iterable[int], max_gap_s: float = 5.0) -> npt.NDArray[np.float64]:
         """Positions linearly interpolated at ``t_ns``; NaN further than ``max_gap_s`` outside the
         track or inside a gap between fixes longer than ``max_gap_s``."""
-        t = np.asarray(list(t_ns), dtype=np.int64)
-        out = np.full((len(t), 3), np.nan)
-        if len(self.t_ns) == 0:
-            return out
-        if len(self.t_ns) == 1:
-            ok = np.abs(t - self.t_ns[0]) <= max_gap_s * 1e9
-            out[ok] = self.xyz[0]
-            return out
-        tt = (self.t_ns - self.t_ns[0]).astype(np.float64)
-        q = (t - self.t_ns[0]).astype(np.float64)
-        for k in range(3):
-            out[:, k] = np.interp(q, tt, self.xyz[:, k])  # ends held within max_gap_s, NaN beyond
-        out[(q < -max_gap_s * 1e9) | (q > tt[-1] + max_gap_s * 1e9)] = np.nan
-        # neighbours too far apart in time: unknown
-        j = np.clip(np.searchsorted(tt, q), 1, len(tt) - 1)
-        gap = (tt[j] - tt[j - 1]) > max_gap_s * 1e9
-        out[gap] = np.nan
-        return out
+        return interpolate(self.t_ns, self.xyz, t_ns, max_gap_s)
 
     def latlon_at(self, t_ns: Iterable[int]) -> npt.NDArray[np.float64] | None:
         if self.latlon is None:
@@ -140,36 +155,166 @@ def _xyz(msgtype: str, m: Any) -> tuple[float, float, float] | None:
     return float(_g(p, "x")), float(_g(p, "y")), float(_g(p, "z") or 0.0)
 
 
-def read_track(reader: LogReader, topic: str | None = None) -> PositionTrack | None:
-    """The position track of ``topic`` (default: the first GNSS, else pose topic), or None."""
+def _position_topic(reader: LogReader, topic: str | None) -> tuple[str, str] | None:
+    """(topic, kind) of the positions to read: ``topic`` (which must carry positions), else the
+    first GNSS, else pose topic; None when the log has none."""
     topics = position_topics(reader)
     if topic is None:
-        if not topics:
-            return None
-        topic, kind = topics[0]
-    else:
-        kinds = dict(topics)
-        if topic not in kinds:
-            raise TopicError(f"--position-topic: {reader.path}: topic {topic} carries no positions (NavSatFix, pose or odometry)")
-        kind = kinds[topic]
+        return topics[0] if topics else None
+    kinds = dict(topics)
+    if topic not in kinds:
+        raise TopicError(f"--position-topic: {reader.path}: topic {topic} carries no positions (NavSatFix, pose or odometry)")
+    return topic, kinds[topic]
+
+
+def read_track(reader: LogReader, topic: str | None = None) -> PositionTrack | None:
+    """The position track of ``topic`` (default: the first GNSS, else pose topic), or None."""
+    chosen = _position_topic(reader, topic)
+    if chosen is None:
+        return None
+    return _position_track(*chosen, _samples(reader, [chosen[0]])[chosen[0]])
+
+
+def read_tracks(reader: LogReader, position_topic: str | None = None) -> tuple[PositionTrack | None, list[MotionTrack]]:
+    """:func:`read_track` of ``position_topic`` and :func:`read_motion`, in one pass over the log."""
+    chosen = _position_topic(reader, position_topic)
+    topics = motion_topics(reader)
+    samples = _samples(reader, [t for t, _ in topics])
+    track = None if chosen is None else _position_track(*chosen, samples[chosen[0]])
+    return track, _motion_tracks(topics, samples)
+
+
+def read_motion(reader: LogReader) -> list[MotionTrack]:
+    """The motion of every topic that carries some (:func:`motion_topics`, in that order; one pass
+    over them), each with at least one sample; [] when the log has none."""
+    topics = motion_topics(reader)
+    return _motion_tracks(topics, _samples(reader, [t for t, _ in topics]))
+
+
+class _Samples:
+    """What a topic's messages said: log times, positions (GNSS: lat, lon, alt) and speeds, one
+    entry per message that gave what its kind gives (a position; a twist: a speed)."""
+
+    def __init__(self) -> None:
+        self.t: list[int] = []
+        self.xyz: list[tuple[float, float, float]] = []
+        self.speed: list[float] = []
+
+
+def _samples(reader: LogReader, topics: list[str]) -> dict[str, _Samples]:
+    """:class:`_Samples` of each of ``topics`` (position, odometry, twist topics), one pass."""
+    out = {t: _Samples() for t in topics}
+    if not topics:
+        return out
     decoders: dict[int, Any] = {}
-    ts: list[int] = []
-    vals: list[tuple[float, float, float]] = []
-    for msg in reader.messages([topic]):
+    for msg in reader.messages(topics):
         try:
             dec = decoders.get(msg.channel.id) or decoders.setdefault(msg.channel.id, make_deserializer(msg.channel))
-            v = _xyz(msg.channel.msgtype, dec(msg.data))
+            xyz, speed = _motion_of(msg.channel.msgtype, dec(msg.data))
         except Exception as exc:  # a bad fix is skipped like a bad frame
-            reader.warn(f"{reader.path}: topic {topic} message at log time {msg.log_time} does not decode: {exc}")
+            reader.warn(f"{reader.path}: topic {msg.channel.topic} message at log time {msg.log_time} does not "
+                        f"decode: {exc}")
             continue
-        if v is not None:
-            ts.append(msg.log_time)
-            vals.append(v)
-    t = np.asarray(ts, dtype=np.int64)
-    a = np.asarray(vals, dtype=np.float64).reshape(-1, 3)
+        if xyz is None and speed is None:
+            continue
+        if xyz is None and normalize_msgtype(msg.channel.msgtype) not in _TWIST:
+            continue  # a pose, odometry or fix without a position (GNSS: no fix)
+        got = out[msg.channel.topic]
+        got.t.append(msg.log_time)
+        if xyz is not None:
+            got.xyz.append(xyz)
+        got.speed.append(math.nan if speed is None else speed)
+    return out
+
+
+def _gnss_local(latlonalt: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """(lat, lon, alt) fixes as local (east, north, alt) metres about the first fix."""
+    xy = geo_to_local(latlonalt, (float(latlonalt[0, 0]), float(latlonalt[0, 1])))
+    return np.column_stack([xy, latlonalt[:, 2]])
+
+
+def _position_track(topic: str, kind: str, got: _Samples) -> PositionTrack:
+    t = np.asarray(got.t, dtype=np.int64)
+    a = np.asarray(got.xyz, dtype=np.float64).reshape(-1, 3)
     if kind == "gnss":
-        if len(a) == 0:
-            return PositionTrack(topic, kind, t, a, a)
-        xy = geo_to_local(a, (float(a[0, 0]), float(a[0, 1])))
-        return PositionTrack(topic, kind, t, np.column_stack([xy, a[:, 2]]), a)
+        return PositionTrack(topic, kind, t, _gnss_local(a) if len(a) else a, a)
     return PositionTrack(topic, kind, t, a)
+
+
+#: The kinds of motion a log may carry, in the order they are preferred for finding stops:
+#: odometry (``nav_msgs/Odometry``: its pose, or its twist when the pose is not filled in), other
+#: poses, measured velocities (twists), GNSS fixes (whose positions wander the most while standing).
+MOTION_KINDS = ("odometry", "pose", "twist", "gnss")
+
+
+@dataclass
+class MotionTrack:
+    """What one topic says about the platform's motion: sample times (log time, ns), positions
+    ``xyz`` ([M, 3] metres in a local frame; GNSS: east, north and 0, a fix's altitude wanders the
+    most) and/or ``speed`` ([M] m/s, the norm of the linear velocity, NaN where a message had none);
+    None where the kind has none (a twist has no positions, a pose or a fix no speed)."""
+
+    topic: str
+    kind: str  # one of MOTION_KINDS
+    t_ns: npt.NDArray[np.int64]
+    xyz: npt.NDArray[np.float64] | None = None
+    speed: npt.NDArray[np.float64] | None = None
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    def at(self, t_ns: Iterable[int], max_gap_s: float) -> tuple[npt.NDArray[np.float64] | None,
+                                                                  npt.NDArray[np.float64] | None]:
+        """Positions and speeds at ``t_ns`` (:func:`interpolate`; NaN where unknown)."""
+        t = list(t_ns)
+        return (None if self.xyz is None else interpolate(self.t_ns, self.xyz, t, max_gap_s),
+                None if self.speed is None else interpolate(self.t_ns, self.speed, t, max_gap_s))
+
+
+def motion_topics(reader: LogReader) -> list[tuple[str, str]]:
+    """(topic, kind) of every topic that says how the platform moved, in :data:`MOTION_KINDS` order
+    (then by topic)."""
+    out = set()
+    for c in reader.channels():
+        t = normalize_msgtype(c.msgtype)
+        kind = ("odometry" if t == "nav_msgs/Odometry" else "pose" if t in _POSE else "twist" if t in _TWIST
+                else "gnss" if t in _GNSS else None)
+        if kind is not None:
+            out.add((c.topic, kind))
+    return sorted(out, key=lambda x: (MOTION_KINDS.index(x[1]), x[0]))
+
+
+def _linear_speed(msgtype: str, m: Any) -> float | None:
+    """The norm of a twist's linear velocity (m/s); None when the message has none."""
+    twist = _g(m, "twist")
+    if normalize_msgtype(msgtype) in ("nav_msgs/Odometry", "geometry_msgs/TwistWithCovarianceStamped"):
+        twist = _g(twist, "twist")
+    lin = _g(twist, "linear")
+    if lin is None:
+        return None
+    v = math.sqrt(sum(float(_g(lin, k) or 0.0) ** 2 for k in ("x", "y", "z")))
+    return v if math.isfinite(v) else None
+
+
+def _motion_of(msgtype: str, m: Any) -> tuple[tuple[float, float, float] | None, float | None]:
+    """A message's position (odometry, poses, GNSS: :func:`_xyz`) and speed (odometry, twists)."""
+    t = normalize_msgtype(msgtype)
+    if t in _TWIST:
+        return None, _linear_speed(msgtype, m)
+    return _xyz(msgtype, m), (_linear_speed(msgtype, m) if t == "nav_msgs/Odometry" else None)
+
+
+def _motion_tracks(topics: list[tuple[str, str]], samples: dict[str, _Samples]) -> list[MotionTrack]:
+    out = []
+    for topic, kind in topics:
+        got = samples[topic]
+        if not got.t:
+            continue
+        xyz = None
+        if kind != "twist":
+            xyz = np.asarray(got.xyz, dtype=np.float64).reshape(-1, 3)
+            if kind == "gnss":
+                xyz = _gnss_local(xyz) * np.array([1.0, 1.0, 0.0])
+        speed = np.asarray(got.speed, dtype=np.float64) if kind in ("odometry", "twist") else None
+        out.append(MotionTrack(topic, kind, np.asarray(got.t, dtype=np.int64), xyz, speed))
+    return out

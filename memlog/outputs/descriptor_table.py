@@ -7,8 +7,9 @@ when written with ``dtype="float16"``) and optional positions, either geographic
 ``lat``/``lon``/``alt`` or local ``x``/``y``/``z`` (float64, nullable), and optionally
 ``moving_index`` (int64: the frame index with the drive's stops left out, what sequence matching
 runs along; absent in files written before it; ``memlog.extra``'s ``stops`` says how its stops
-were found, :func:`memlog.selection.segment.stop_rule`, absent in files written before it was
-recorded). In numpy a null float is NaN (both directions).
+were found — rule, ``still_distance``, the motion rule's thresholds and the ``source`` that
+decided: the log's motion or its images —, :func:`memlog.scoring.motion.stop_rule`, absent in
+files written before it was recorded). In numpy a null float is NaN (both directions).
 
 Storage: the descriptor column is plain-encoded (no dictionary) and zstd-compressed, in row
 groups of about 16 MiB of descriptors, so a reader can stream it; the topic column is
@@ -52,7 +53,7 @@ from memlog.io.atomic import atomic_output
 from memlog.io.base import FrameWindow
 from memlog.io.identity import same_identity
 from memlog.progress import info
-from memlog.selection.segment import SEGMENT_DEFAULTS, recorded_still_distance
+from memlog.scoring.motion import STILL_DISTANCE, stops_found_otherwise
 
 __all__ = ["write_descriptors", "read_descriptors", "read_cached", "stored_dtype", "DTYPES", "descriptor_arrow",
            "write_arrow"]
@@ -316,11 +317,12 @@ def _strings(col: pa.ChunkedArray, path: Path) -> list[str]:
 
 def read_cached(path: str | os.PathLike[str], log: str | os.PathLike[str], meta: DescriptorMeta,
                 window: FrameWindow,
-                still_distance: float = SEGMENT_DEFAULTS.still_distance) -> DescriptorTable | None:
+                still_distance: float = STILL_DISTANCE) -> DescriptorTable | None:
     """The descriptor table cached at ``path`` when ``describe_log`` made it from ``log`` (same
     identity: path, size, modification time), with ``window``, a describer compatible with
     ``meta`` and the frames' ``moving_index``, its stops found as they are now with
-    ``still_distance`` (``extra["stops"]``); else None, saying why (``window.topics`` None: the
+    ``still_distance`` (``extra["stops"]``, :func:`~memlog.scoring.motion.stops_found_otherwise`:
+    by the same rule, from the log's motion when it has any); else None, saying why (``window.topics`` None: the
     topics the table was made from)."""
     p = Path(path)
     if not p.is_file():
@@ -341,10 +343,8 @@ def read_cached(path: str | os.PathLike[str], log: str | os.PathLike[str], meta:
     if t.moving_index is None:
         info(f"not reusing {p}: it has no moving_index (written before stops were recorded)")
         return None
-    found = recorded_still_distance(t.extra)
-    if found != float(still_distance):
-        how = "by an older memlog (frame to frame)" if found is None else \
-            f"with still_distance {found:g}, not {still_distance:g}"
+    how = stops_found_otherwise(t.extra, still_distance)
+    if how is not None:
         info(f"not reusing {p}: its stops were found {how}")
         return None
     info(f"reusing descriptors {p} (same log, window and descriptor)")

@@ -23,12 +23,15 @@ the robot moved, else the view change when the table has view vectors, else time
 timestamps span > 0, else frame count. Bins that hold no frame (the robot jumped, a time gap)
 are not segments.
 
-Stops. A frame whose view lies within ``still_distance`` of its stop's first frame (a standing
-camera: sensor noise only; :func:`still_rows`, which measures from the stop's first frame so that
-a crawl, each step below the noise, is not a stop) adds nothing to the coordinate, whichever it is (distance, view change or time): the
-frames of a stop lie at one place of the drive and fall in one segment, so a stop never gets
-more than one map frame (``info["still_frames"]`` counts the frames that stood still). GNSS
-jitter of a standing robot, or the seconds it stood, do not make segments.
+Stops. A frame that stood still (:func:`memlog.scoring.motion.find_stops`, the rule matching uses
+too: by the log's own motion when it knows every frame of the drive (odometry, poses, twists,
+GNSS: the table's ``motion``), else by the images: its view within ``still_distance`` of its
+stop's first frame, a standing camera's sensor noise only; both measure from the stop's first
+frame, so a crawl is not a stop) adds nothing to the coordinate, whichever it is (distance, view
+change or time): the frames of a stop lie at one place of the drive and fall in one segment, so a
+stop never gets more than one map frame (``info["still_frames"]`` counts the frames that stood
+still; ``info["stops_from"]`` names the motion topic when the log's motion decided). GNSS jitter
+of a standing robot, or the seconds it stood, do not make segments.
 
 Position gaps (``"distance"``). The coordinate is the path length through the known positions
 (rows with a NaN or infinite coordinate are unknown); a row between two consecutive fixes is placed between
@@ -87,21 +90,21 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import asdict, dataclass
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from memlog.errors import ConfigError, SelectionError
-from memlog.scoring.scorer import blank_views, view_steps
+from memlog.errors import ConfigError
+from memlog.scoring.motion import MOTION_KINDS, STILL_DISTANCE, find_stops
+from memlog.scoring.scorer import view_steps
 from memlog.selection._checks import finite_number, fraction, positive_int, positive_number
 from memlog.selection.paper import codes_to_reasons, first_failing
 from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
 
 __all__ = ["SegmentConfig", "SegmentDefaults", "SEGMENT_DEFAULTS", "select_segments", "segment_ids", "cut_segments",
-           "shortlist_rows", "upper_bounds", "MS_DIGITS", "still_rows", "moving_index", "moving_index_of_views",
-           "STOP_RULE", "stop_rule", "recorded_still_distance", "combined_score", "geometric_score", "percentile_ranks"]
+           "shortlist_rows", "upper_bounds", "MS_DIGITS", "combined_score", "geometric_score", "percentile_ranks"]
 
 SegmentBy = Literal["auto", "distance", "time", "count", "view"]
 Combine = Literal["rank", "geometric"]
@@ -122,7 +125,7 @@ class SegmentDefaults:
     by: SegmentBy = "auto"
     keep_fraction: float = 0.25
     view_distance: float = 0.3
-    still_distance: float = 0.001
+    still_distance: float = STILL_DISTANCE
     min_ms: float = 0.0
     min_ss: float = 0.1
     min_es: float = 0.0
@@ -153,7 +156,10 @@ class SegmentConfig:
     (:mod:`memlog.selection.staged`); None: every frame is a candidate. ``centre_tolerance``: a
     part's candidate is, among its rows whose upper bound is within this fraction of the part's
     best, the one nearest the middle of the part along the segment coordinate (see
-    :func:`shortlist_rows`); 0: the best by the bound alone."""
+    :func:`shortlist_rows`); 0: the best by the bound alone. ``still_distance``: the image rule's
+    stop threshold (:func:`memlog.scoring.motion.find_stops`, default
+    :data:`memlog.scoring.motion.STILL_DISTANCE`; the log's motion decides instead when it knows
+    every frame); 0: no stops, whatever the source."""
 
     by: SegmentBy = SEGMENT_DEFAULTS.by
     keep_fraction: float | None = None
@@ -400,85 +406,6 @@ def _view_step(d: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.asarray(np.minimum(chord, VIEW_STEP_CAP), dtype=np.float64)
 
 
-def still_rows(view: ArrayLike, still_distance: float = SEGMENT_DEFAULTS.still_distance) -> NDArray[np.bool_]:
-    """Rows that stood still: their view vector (``view``: [N, v], rows in drive order,
-    :func:`memlog.scoring.scorer.view_vector`) lies within ``still_distance`` (cosine) of the
-    stop's first frame, the last row that moved (the first row never stands still; two blank
-    views are the same view, a blank and a non-blank one differ by 1; a row with an unknown
-    vector moves; ``still_distance <= 0``: none). Measured from the stop's first frame, not the
-    predecessor, so a camera that crawls (a fraction of a pixel per frame, each step below sensor
-    noise) stands only until its view has drifted by ``still_distance``: a crawl is drive, a stop
-    is not."""
-    v = np.asarray(view, dtype=np.float64)
-    n = len(v)
-    still = np.zeros(n, dtype=bool)
-    if still_distance <= 0 or n < 2:
-        return still
-    steps = np.nan_to_num(view_steps(v), nan=np.inf)
-    blank = blank_views(v)
-    # a row whose step from its predecessor is 4x the threshold or more is out of reach of any
-    # anchor its predecessor stood within (chord lengths: sqrt(2 * 4t) - sqrt(2t) = sqrt(2t)), so
-    # only rows below that are compared with the anchor
-    near = steps < 4 * still_distance
-    anchor = 0
-    for i in range(1, n):
-        if near[i]:
-            if anchor == i - 1:
-                d = steps[i]
-            elif blank[i] or blank[anchor]:
-                d = 0.0 if blank[i] and blank[anchor] else 1.0
-            else:
-                d = 1.0 - float(np.dot(v[i], v[anchor]))  # NaN (unknown) compares False: moves
-            if d < still_distance:
-                still[i] = True
-                continue
-        anchor = i
-    return still
-
-
-def moving_index(index: ArrayLike, still: ArrayLike) -> NDArray[np.int64]:
-    """The frame index with the stops left out: ``index`` (frame indices of one topic's rows in
-    drive order) minus the frames spent standing still up to each row, where a row that stood
-    still (``still``) stood for all the frames since the previous row. A standing camera's frames
-    share one value, so a drive matched along it does not stretch a stop over many places."""
-    idx = np.asarray(index, dtype=np.int64)
-    st = np.asarray(still, dtype=bool)
-    if idx.shape != st.shape:
-        raise SelectionError(f"moving_index: {idx.shape[0]} frame indices but {st.shape[0]} still flags")
-    gap = np.diff(idx, prepend=idx[:1])
-    return np.asarray(idx - np.cumsum(np.where(st, gap, 0)), dtype=np.int64)
-
-
-def moving_index_of_views(index: ArrayLike, view: ArrayLike,
-                          still_distance: float = SEGMENT_DEFAULTS.still_distance) -> NDArray[np.int64]:
-    """:func:`moving_index` of one topic's rows from their view vectors (``view``: [N, v], rows in
-    drive order; the stops are their :func:`still_rows`)."""
-    return moving_index(index, still_rows(view, still_distance))
-
-
-#: How :func:`still_rows` finds a stop, as a descriptor table records it beside its moving index
-#: (``extra["stops"]``, :func:`stop_rule`). Tables written before it was recorded found stops frame
-#: to frame (a slow crawl was one stop).
-STOP_RULE = "within still_distance of the stop's first frame"
-
-
-def stop_rule(still_distance: float = SEGMENT_DEFAULTS.still_distance) -> dict[str, Any]:
-    """The record of how a drive's stops were found (:func:`still_rows` with ``still_distance``),
-    kept with its moving index: two drives are matched along their moving indices only when
-    their stops were found alike."""
-    return {"rule": STOP_RULE, "still_distance": float(still_distance)}
-
-
-def recorded_still_distance(extra: Mapping[str, Any]) -> float | None:
-    """The ``still_distance`` a descriptor table's stops were found with under today's rule (its
-    ``extra["stops"]``, as :func:`stop_rule` wrote it); None when the table does not say, or
-    found them by another rule."""
-    rule = extra.get("stops")
-    if isinstance(rule, Mapping) and rule.get("rule") == STOP_RULE:
-        return float(rule["still_distance"])
-    return None
-
-
 def _moving_steps(view: ArrayLike, still: NDArray[np.bool_]) -> NDArray[np.float64]:
     """How much the view changed at each row that moved since the previous row that moved (cosine
     distance, :func:`~memlog.scoring.scorer.view_steps` of the moving rows; 0 at still rows). A
@@ -583,9 +510,12 @@ def cut_segments(table: ScoreTable, config: SegmentConfig
                           "table has neither")
     if by == "view" and not anchored and table.view is None:
         raise ConfigError("segment by='view' needs the frames' view vectors, but the score table has none")
-    still = np.zeros(n, dtype=bool) if table.view is None else still_rows(table.view, config.still_distance)
-    if table.view is not None:
+    stops = find_stops(n, table.view, table.motion, config.still_distance)
+    still = stops.still
+    if table.view is not None or stops.source in MOTION_KINDS:
         info["still_frames"] = int(still.sum())
+    if stops.source in MOTION_KINDS:
+        info["stops_from"] = {"source": stops.source, "topic": stops.topic}
     n_seg = (
         max(1, int(np.floor(config.keep_fraction * n + 0.5)))
         if config.keep_fraction is not None

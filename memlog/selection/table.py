@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from memlog.errors import SelectionError
+from memlog.scoring.motion import FrameMotion
 from memlog.scoring.scorer import blank_views
 
 __all__ = ["ScoreTable", "Selection", "Gap", "CRITERIA", "REASONS", "DISTINCT"]
@@ -67,8 +68,10 @@ class ScoreTable:
     NaN = unknown; :mod:`memlog.selection.distinctiveness`). ``view`` is the optional [N, v]
     float32 view vector of each frame (:func:`memlog.scoring.scorer.view_vector`: a small
     zero-mean grey thumbnail, unit length, zero for a blank frame, NaN = unknown): consecutive
-    frames' distance measures how much the view changed (view segments, stops). Columns are copied
-    and converted on construction.
+    frames' distance measures how much the view changed (view segments, stops). ``motion`` is the
+    log's own motion at the rows (:func:`memlog.scoring.motion.frame_motion`; None: the log has
+    none that knows every row), which decides the stops when given
+    (:func:`memlog.scoring.motion.find_stops`). Columns are copied and converted on construction.
     """
 
     index: NDArray[np.int64]
@@ -81,9 +84,12 @@ class ScoreTable:
     topic: str = ""
     ds: NDArray[np.float64] | None = None
     view: NDArray[np.float32] | None = None
+    motion: FrameMotion | None = None
 
     def __post_init__(self) -> None:
         self.index = _int_column("index", self.index)
+        if self.motion is not None and len(self.motion) != len(self.index):
+            raise SelectionError(f"ScoreTable.motion must have {len(self.index)} rows, got {len(self.motion)}")
         if self.view is not None:
             v = np.asarray(self.view, dtype=np.float32)
             if v.ndim != 2 or v.shape[0] != len(self.index):
@@ -181,6 +187,7 @@ class ScoreTable:
             topic=self.topic,
             ds=None if self.ds is None else self.ds[r],
             view=None if self.view is None else self.view[r],
+            motion=None if self.motion is None else self.motion.take(r),
         )
 
     def blank_view(self) -> NDArray[np.bool_]:

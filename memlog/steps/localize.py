@@ -53,7 +53,8 @@ from memlog.outputs.descriptor_table import read_cached, read_descriptors, store
 from memlog.outputs.map_artefact import check_map_pair
 from memlog.outputs.matches import write_match_log, write_matches
 from memlog.progress import info, warning
-from memlog.selection.segment import SEGMENT_DEFAULTS, recorded_still_distance
+from memlog.scoring.motion import recorded_still_distance
+from memlog.selection.segment import SEGMENT_DEFAULTS
 
 __all__ = ["localize", "LocalizeConfig", "LocalizeResult", "describer_for"]
 

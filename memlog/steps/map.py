@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -41,7 +42,7 @@ from memlog.io.base import FrameWindow, LogReader
 from memlog.io.frame import Frame
 from memlog.io.identity import same_identity
 from memlog.io.open import open_log
-from memlog.io.positions import PositionTrack, read_track
+from memlog.io.positions import MotionTrack, PositionTrack, read_tracks
 from memlog.io.records import ReadReport
 from memlog.models.runtime import choose_providers
 from memlog.outputs.annotated import read_scores, run_config, run_input_identity, scores_message
@@ -50,10 +51,11 @@ from memlog.outputs.map_artefact import write_map
 from memlog.outputs.maplog import MapLogWriter
 from memlog.progress import info, progress
 from memlog.scoring.config import ScoreConfig
+from memlog.scoring.motion import Stops, find_stops, frame_motion, moving_index, stops_record
 from memlog.scoring.scorer import view_vector
 from memlog.selection import ScoreTable, Selection
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
-from memlog.selection.segment import SegmentConfig, cut_segments, moving_index_of_views
+from memlog.selection.segment import SegmentConfig, cut_segments
 from memlog.selection.staged import MSState
 from memlog.steps.map_scoring import CheapFrame, SegmentJob, cheap_frames, choose_chunk, staged_record
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
@@ -176,12 +178,13 @@ def _val(v: Any) -> float:
 
 def score_table(records: list[dict[str, Any]], topic: str, track: PositionTrack | None = None,
                 descriptors: np.ndarray | None = None, ds: dict[int, float] | None = None,
-                view: np.ndarray | None = None) -> ScoreTable:
+                view: np.ndarray | None = None, motion: Sequence[MotionTrack] = ()) -> ScoreTable:
     """A ScoreTable from score records (``T/memlog/scores`` messages) of one topic; records of
     frames that did not decode are left out. Where MS was only bounded (staged selection), its
     lower bound stands in: such a frame provably did not win its segment, or was its segment's one
     candidate (MS did not choose). ``ds``: distinctiveness by frame index; ``descriptors``/``view``
-    one row per kept record."""
+    one row per kept record; ``motion``: the log's (:func:`memlog.io.positions.read_motion`), at
+    the frames when a topic of it knows every one (the stops then come from it)."""
     recs = [r for r in records if r.get("rejected_by") != "undecodable"]
     t = np.array([r["log_time"] for r in recs], dtype=np.int64)
     pos = track.at(t.tolist()) if track is not None and len(recs) else None
@@ -193,6 +196,7 @@ def score_table(records: list[dict[str, Any]], topic: str, track: PositionTrack 
         ss=np.array([_val(r["ss"]) for r in recs]),
         es=np.array([_val(r["es"]) for r in recs]), positions=pos, descriptors=descriptors, topic=topic,
         ds=None if ds is None else np.array([ds.get(r["frame_index"], np.nan) for r in recs]), view=view,
+        motion=frame_motion(motion, t),
     )
 
 
@@ -266,30 +270,34 @@ def _stageable(cfg: MapConfig) -> bool:
         and cfg.score.mode != "paper" and not sel.needs_distinctiveness
 
 
-def _moving(frames: list[Frame], tables: dict[str, ScoreTable], still_distance: float) -> np.ndarray | None:
+def _moving(frames: list[Frame], tables: dict[str, ScoreTable], still_distance: float
+            ) -> tuple[np.ndarray | None, dict[str, Any] | None]:
     """The kept frames' index with the drive's stops left out (the stops selection found, from
-    the view vectors of every frame it saw); None when a topic's table has no view vectors."""
+    the log's motion or the view vectors of every frame it saw: :func:`find_stops`) and how they
+    were found (``extra["stops"]``); None when a topic's table has neither view vectors nor motion
+    for every frame."""
     out = np.zeros(len(frames), dtype=np.int64)
     lookup: dict[str, dict[int, int]] = {}
+    found: dict[str, Stops] = {}
     for t, table in tables.items():
-        if table.view is None:
-            return None
-        mi = moving_index_of_views(table.index, table.view, still_distance)
-        lookup[t] = dict(zip(table.index.tolist(), mi.tolist()))
+        if table.view is None and (table.motion is None or not table.motion.complete):
+            return None, None
+        found[t] = find_stops(table.n, table.view, table.motion, still_distance)
+        lookup[t] = dict(zip(table.index.tolist(), moving_index(table.index, found[t].still).tolist()))
     for k, f in enumerate(frames):
         v = lookup.get(f.topic, {}).get(f.index)
         if v is None:
-            return None
+            return None, None
         out[k] = v
-    return out
+    return out, stops_record(still_distance, found)
 
 
 def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topic: Records,
                 track: PositionTrack | None, looks: Looks | None,
                 ds_by_topic: dict[str, dict[int, float]] | None = None,
-                tables: dict[str, ScoreTable] | None = None) -> dict[str, Selection]:
+                tables: dict[str, ScoreTable] | None = None, motion: Sequence[MotionTrack] = ()) -> dict[str, Selection]:
     """Select once per topic from the score records (and the frames' looks when selection needs
-    them); ``tables`` receives each topic's ScoreTable."""
+    them, and the log's ``motion``); ``tables`` receives each topic's ScoreTable."""
     selections: dict[str, Selection] = {}
     for t in cams:
         recs = recs_by_topic.get(t, [])
@@ -301,7 +309,8 @@ def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topi
                 descs = np.stack([np.asarray(have[r["frame_index"]][0]) for r in recs]).astype(np.float32)
             if recs and _needs_view(cfg):
                 view = np.stack([np.asarray(have[r["frame_index"]][1]) for r in recs]).astype(np.float32)
-        table = score_table(recs, t, track, descs, None if ds_by_topic is None else ds_by_topic.get(t, {}), view)
+        table = score_table(recs, t, track, descs, None if ds_by_topic is None else ds_by_topic.get(t, {}), view,
+                            motion)
         left_out = len(recs_by_topic.get(t, [])) - table.n
         if left_out:
             reader.warn(f"{reader.path}: topic {t}: {left_out} frame(s) left out of the selection "
@@ -356,7 +365,7 @@ def _full(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: P
 
 
 def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: PositionTrack | None,
-            ex: Executor) -> tuple[Records, Looks | None, Crops]:
+            ex: Executor, motion: Sequence[MotionTrack] = ()) -> tuple[Records, Looks | None, Crops]:
     """Staged segment selection (:mod:`memlog.steps.map_scoring`): the cheap criteria of every
     frame, segments, then ResMem only where it can change which frame a segment keeps."""
     sel_cfg = cfg.select
@@ -375,15 +384,15 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
         good = [cf for cf in cheap[t] if cf.error is None]
         if not good:
             continue
+        t_ns = np.array([cf.frame.log_time_ns for cf in good], dtype=np.int64)
         table = ScoreTable(
-            index=np.array([cf.frame.index for cf in good], dtype=np.int64),
-            t_ns=np.array([cf.frame.log_time_ns for cf in good], dtype=np.int64),
+            index=np.array([cf.frame.index for cf in good], dtype=np.int64), t_ns=t_ns,
             ms=np.zeros(len(good)), ss=np.array([round(float(cf.ss or 0.0), 6) for cf in good]),
             es=np.array([round(float(cf.es or 0.0), 6) for cf in good]),
             positions=_positions(track, good),
             descriptors=np.stack([np.asarray(cf.thumb) for cf in good]) if sel_cfg.needs_descriptors else None,
             view=np.stack([np.asarray(cf.view) for cf in good]) if _needs_view(cfg) else None,
-            topic=t)
+            topic=t, motion=frame_motion(motion, t_ns))
         seg, coord, _ = cut_segments(table, seg_cfg)
         passing = (table.ss >= sel_cfg.min_ss) & (table.es >= sel_cfg.min_es)
         for sid in np.unique(seg):
@@ -462,14 +471,15 @@ def make_map(
         if missing_keep:
             raise ConfigError(f"--keep-topic: {reader.path} has no topic {', '.join(sorted(missing_keep))} "
                               f"(topics: {', '.join(reader.topics())})")
-        track = read_track(reader, cfg.position_topic)  # None when the log has no position topic
+        # positions (None when the log has no position topic) and the log's motion (stops), one pass
+        track, motion = read_tracks(reader, cfg.position_topic)
         # no camera topic: nothing to describe (the selection below reports the empty map)
         choice = resolve_descriptor(cfg.descriptor, reader, cams[0]) if cfg.descriptor is not None and cams else None
         describer = make_describer(choice.chosen) if choice is not None else None
         ex = executor or make_executor(cfg.workers)
         try:
             if scores is None and _stageable(cfg):
-                recs_by_topic, looks, crops = _staged(str(log), reader, cfg, cams, track, ex)
+                recs_by_topic, looks, crops = _staged(str(log), reader, cfg, cams, track, ex, motion)
             else:
                 recs_by_topic, looks, crops = _full(str(log), reader, cfg, cams, track, ex, scores)
         finally:
@@ -485,7 +495,7 @@ def make_map(
                 indices={t: {r["frame_index"] for r in recs_by_topic.get(t, [])} for t in cams}, known=known)
         tables: dict[str, ScoreTable] = {}
         selections = _selections(reader, cfg, cams, recs_by_topic, track, looks,
-                                 ds_by_topic if sel_cfg.needs_distinctiveness else None, tables)
+                                 ds_by_topic if sel_cfg.needs_distinctiveness else None, tables, motion)
         kept = {t: {int(i) for i in s.index[s.keep]} for t, s in selections.items()}
         n_in = sum(len(s.index) for s in selections.values())
         n_kept = sum(len(k) for k in kept.values())
@@ -545,9 +555,9 @@ def make_map(
                 frames, desc, white = described
                 extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
                          "keep_fraction": sel_cfg.keep_fraction, "descriptor_choice": choice.to_dict()}
-                moving = _moving(frames, tables, sel_cfg.still_distance)
+                moving, stops = _moving(frames, tables, sel_cfg.still_distance)
                 table = build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra,
-                                    whitening=white, moving=moving, still_distance=sel_cfg.still_distance)
+                                    whitening=white, moving=moving, stops=stops)
             # the map and its descriptors as one artefact: each records the other, both in place or neither
             write_map(w, {
                 "descriptor": json.dumps(choice.to_dict() if choice else None, sort_keys=True),
