@@ -1213,14 +1213,7 @@ def rerank_by_patches(res: SequenceMatch, q_desc: F32, r_desc: F32, q_patches: n
     rows_q = np.arange(n_q)
     margin = np.where(has & (idx[:, 0] >= 0), ps[:, 0] - ps[rows_q, second_col], np.nan)
     second = np.where(has, idx[rows_q, second_col], -1)
-    ratio = np.full(n_q, np.nan)
-    ok = (idx[:, 0] >= 0) & (second >= 0)
-    if ok.any():
-        qd = q_desc[ok].astype(np.float64)
-        s1 = np.einsum("ij,ij->i", qd, r_desc[idx[ok, 0]].astype(np.float64))
-        s2 = np.einsum("ij,ij->i", qd, r_desc[second[ok]].astype(np.float64))
-        d1, d2 = np.sqrt(np.maximum(0.0, 2 - 2 * s1)), np.sqrt(np.maximum(0.0, 2 - 2 * s2))
-        ratio[ok] = np.where(d2 > 0, d1 / np.where(d2 > 0, d2, 1.0), 1.0)
+    ratio = _ratio(q_desc, Database.of(r_desc), idx[:, 0], second, np.arange(len(r_desc), dtype=np.int64))
     kk = min(k, n_c)
     info = {**res.info, "patch_rerank": n_c}  # the places re-ranked
     return SequenceMatch(idx[:, :kk], np.take_along_axis(res.scores, order, axis=1)[:, :kk],
