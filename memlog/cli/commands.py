@@ -479,6 +479,9 @@ def add_sequence_flags(p: Any) -> None:
     g.add_argument("--speed-prior", type=nonneg_float, metavar="P",
                    help="a path's score loses P per doubling or halving of its speed against the map's "
                         f"(default {SEQUENCE_DEFAULTS.speed_prior:g}; 0: every speed of --speeds alike)")
+    g.add_argument("--no-rerank", dest="no_rerank", action="store_true",
+                   help="keep the order of the descriptor match (default: each query's best places are re-ranked by "
+                        "the map's stored patch features, and the confidence is the re-rank's margin)")
     g.add_argument("--coordinate", choices=["auto", "frames", "time", "positions"],
                    help="what sequences follow: frame indices, stamps, or distance along both logs' positions "
                         "(default auto: positions when both logs have them, else frames)")
@@ -507,10 +510,10 @@ def sequence_config(args: argparse.Namespace) -> Any:
     from memlog.descriptors.sequence import SequenceConfig
 
     given = [flag for dest, flag in _SEQUENCE_FLAGS.items() if getattr(args, dest, None) not in (None, False)]
+    kw: dict[str, Any] = {"rerank": False} if getattr(args, "no_rerank", False) else {}
     if args.sequence == 0 and given:
         raise ConfigError(f"{', '.join(given)} set(s) how sequences are matched, but --sequence 0 matches single "
                           "frames")
-    kw: dict[str, Any] = {}
     for key, dest in (("length", "sequence"), ("speeds", "speeds"), ("candidates", "sequence_k"),
                       ("coordinate", "coordinate"), ("path", "sequence_path"), ("max_gap_s", "max_gap"),
                       ("speed_prior", "speed_prior")):
@@ -594,8 +597,10 @@ def add_evaluate(sub: Any) -> None:
     p.add_argument("--query-topic", help="query camera topic (default: the first)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report (an older one in OUT is removed)")
     p.add_argument("--candidates", type=count_or_all, metavar="K|all",
-                   help="the memorable map is the one `memlog map --candidates K` writes (default %(default_k)s); "
-                        "the exact selection is reported beside it" % {"default_k": DEFAULT_CANDIDATES})
+                   help="the memorable map is the one `memlog map --candidates K` writes (default %(default_k)s)"
+                        % {"default_k": DEFAULT_CANDIDATES})
+    p.add_argument("--compare-exact", action="store_true",
+                   help="also evaluate the exact selection (every reference frame's memorability scored; slower)")
     add_sequence_flags(p)
     add_config_flags(p)
     p.set_defaults(func=cmd_evaluate)
@@ -620,13 +625,15 @@ def evaluate_config(args: argparse.Namespace) -> Any:
         flags["report"] = False
     if args.no_whiten:
         flags["whiten"] = False
+    if args.compare_exact:
+        flags["compare_exact"] = True
     if args.max_frames is not None:
         flags["max_frames"] = args.max_frames
     if args.candidates is not None:
         if select.mode != "segment":
             raise ConfigError(f"--candidates applies to segment selection only, not --select {select.mode}")
         flags["candidates"] = args.candidates
-    if any(getattr(args, d, None) not in (None, False) for d in ("sequence", *_SEQUENCE_FLAGS)):
+    if any(getattr(args, d, None) not in (None, False) for d in ("sequence", "no_rerank", *_SEQUENCE_FLAGS)):
         flags["sequence"] = sequence_config(args)
     if args.start is not None or args.end is not None or args.stride != 1:
         flags["window"] = frame_window(args, args.reference)

@@ -180,7 +180,9 @@ class SequenceConfig:
     score loses this much per doubling (or halving) of its speed against 1, ``|log2 v|`` (0: every
     speed in the range alike). Experimental settings (benchmarks compare them; the defaults are
     what was measured best): ``pairing`` (``mutual`` | ``all``), ``score_norm`` (``sqrt`` |
-    ``mean``) and ``places`` (the best-voted places scored exactly).
+    ``mean``) and ``places`` (the best-voted places scored exactly). ``rerank``: re-rank each
+    query's best places by patch features when both tables carry them under one PCA
+    (:func:`rerank_by_patches`; ``--no-rerank`` turns it off).
     """
 
     length: int = 10
@@ -200,6 +202,7 @@ class SequenceConfig:
     pairing: str = "mutual"
     score_norm: str = "sqrt"
     places: int = EXACT_PLACES
+    rerank: bool = True
 
     def __post_init__(self) -> None:
         check_ints(self, {"length": 0, "candidates": 1, "block": 1, "places": 1})
@@ -231,8 +234,8 @@ class SequenceConfig:
         if isinstance(self.exclude, bool) or not isinstance(self.exclude, (int, float)) or not (
                 math.isfinite(self.exclude) and self.exclude >= 0):
             raise ConfigError(f"exclude must be a number >= 0, got {self.exclude!r}")
-        if not isinstance(self.scale_length, bool) or not isinstance(self.stops, bool):
-            raise ConfigError("scale_length and stops must be true or false")
+        if not all(isinstance(v, bool) for v in (self.scale_length, self.stops, self.rerank)):
+            raise ConfigError("scale_length, stops and rerank must be true or false")
         if self.length == 0 and self.causal:
             raise ConfigError("causal needs a sequence: length (--sequence) must be >= 1")
 

@@ -85,8 +85,8 @@ class EvaluateConfig:
     protocol counts a query whose best match was discarded; ``reference_topic`` /
     ``query_topic``: camera topics (default: the first); ``report``: write report.html.
     ``candidates``: the memorable map is the one ``memlog map --candidates`` writes with these
-    settings (its exact selection, ``candidates="all"``, is reported beside it as
-    ``memorable_exact``). ``sequence``: how query frames are matched (the localize step's
+    settings; ``compare_exact``: its exact selection, ``candidates="all"``, is reported beside it
+    as ``memorable_exact`` (opt-in: it scores every reference frame's memorability). ``sequence``: how query frames are matched (the localize step's
     default: sequences; ``length`` 0: single frames); every map is also evaluated frame by frame
     (``single_frame`` in each row) when sequences are on.
     """
@@ -107,6 +107,7 @@ class EvaluateConfig:
     report: bool = True
     candidates: int | Literal["all"] = DEFAULT_CANDIDATES
     sequence: SequenceConfig = SequenceConfig()
+    compare_exact: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.sequence, SequenceConfig):
@@ -438,7 +439,8 @@ def evaluate(
         kk = int(mask.sum())
         variants = {"full": np.ones(len(ref_t), bool), "memorable": mask, "uniform": uniform_mask(len(ref_t), kk)}
         exact = None
-        if cfg.select.mode == "segment" and cfg.candidates != "all" and map_res.tables.get(ref_topic) is not None:
+        if (cfg.compare_exact and cfg.select.mode == "segment" and cfg.candidates != "all"
+                and map_res.tables.get(ref_topic) is not None):
             exact = cfg.select.run(map_res.tables[ref_topic], ms_bound="one" if score_cfg.normalize == "static" else "ss")
             variants["memorable_exact"] = np.isin(ref_t.frame_index, exact.kept_indices)
         if "x" in ref_t.positions or "lat" in ref_t.positions:
