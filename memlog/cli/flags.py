@@ -19,7 +19,8 @@ from memlog.selection.config import SelectionConfig
 
 __all__ = [
     "unit_interval", "fraction", "positive_float", "nonneg_float", "positive_int", "nonneg_int", "int_range",
-    "cosine_distance", "speed_range", "log_time", "ray_address", "add_config_flags", "add_window_flags", "add_selection_flags",
+    "cosine_distance", "speed_range", "log_time", "ray_address", "GROUPS", "FlagGroups", "add_config_flag",
+    "add_score_flags", "add_max_pixels", "add_window_flags", "add_select_flags", "add_selection_flags",
     "score_config", "selection_config", "frame_window", "file_section", "setting_names_to_flags",
 ]
 
@@ -168,6 +169,42 @@ def _resolve_time(text: str | None, log_start_ns: Callable[[], int | None], flag
 
 
 # -- flag groups ----------------------------------------------------------------------------------
+#: The named groups of a command's --help, in the order every command shows them: first the flags most
+#: runs need (argparse's "options", with -h and -q), then what is read and written, then how.
+GROUPS: dict[str, str] = {
+    "inputs": "which topics and frames are read",
+    "outputs": "what is written besides -o",
+    "comparisons": "what the memorable map is compared with",
+    "selection": "which frames the map keeps",
+    "sequence matching": "on by default: the query is matched as a drive, not frame by frame",
+    "scoring": "the three criteria and their thresholds; defaults: the paper's",
+    "performance": "speed and resources; a flag that may change the result says so",
+    "experimental": "for experiments and benchmarks (reproducing measurements); ordinary runs do not need them",
+}
+
+
+class FlagGroups:
+    """A command's flag groups: :attr:`common` (the flags most runs need, shown first) and the named
+    groups of :data:`GROUPS` it uses, created in that order; ``descriptions`` replaces the one-line
+    description of a group for this command."""
+
+    def __init__(self, parser: argparse.ArgumentParser, *names: str, descriptions: dict[str, str] | None = None):
+        unknown = set(names) - set(GROUPS)
+        if unknown:
+            raise ValueError(f"unknown flag group(s) {sorted(unknown)}")
+        self.common = parser
+        descriptions = {**GROUPS, **(descriptions or {})}
+        self._groups = {name: parser.add_argument_group(name, descriptions[name]) for name in GROUPS if name in names}
+
+    def __getitem__(self, name: str) -> argparse._ArgumentGroup:
+        return self._groups[name]
+
+    def exclusive(self, *actions: argparse.Action) -> None:
+        """``actions`` are mutually exclusive, each shown in its own group."""
+        group = self.common.add_mutually_exclusive_group()
+        group._group_actions.extend(actions)
+
+
 class _MaxPixels(argparse.Action):
     """--max-pixels N: sets the decoded-pixel cap for this run and its worker processes."""
 
@@ -179,79 +216,102 @@ class _MaxPixels(argparse.Action):
         setattr(ns, self.dest, values)
 
 
-def add_max_pixels(p: argparse.ArgumentParser) -> None:
+def add_max_pixels(g: argparse._ActionsContainer) -> None:
     """``--max-pixels``: frames larger than this are reported and skipped before decoding."""
-    p.add_argument("--max-pixels", type=positive_int, action=_MaxPixels, metavar="N",
+    g.add_argument("--max-pixels", type=positive_int, action=_MaxPixels, metavar="N",
                    help="skip (and report) frames of more than N pixels, checked from the image header before "
                         "decoding (default 100000000)")
 
 
-def add_config_flags(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("scoring (defaults: the paper's; the --config file < flags)")
+def add_config_flag(g: argparse._ActionsContainer) -> None:
+    """``--config``: settings from a file, which flags override."""
     g.add_argument("--config", metavar="FILE",
-                   help="TOML/YAML/JSON file with [score], [select], [map], [localize], [evaluate] tables "
-                        "(or scoring settings at top level); flags override it")
-    g.add_argument("--preset", choices=sorted(CONFIGS), help="named scoring config (st-lucia: the paper's lowered thresholds)")
+                   help="TOML/YAML/JSON settings file: [score], [select], [map], [evaluate], [batch] tables; "
+                        "flags override it")
+
+
+def add_score_flags(groups: FlagGroups, workers: Callable[[argparse._ActionsContainer], None] | None = None) -> None:
+    """The scoring flags: thresholds (scoring), speed (performance; ``workers`` adds the command's
+    --workers first), reference switches (experimental)."""
+    g = groups["scoring"]
+    g.add_argument("--preset", choices=sorted(CONFIGS),
+                   help="named scoring config (st-lucia: the paper's lowered thresholds)")
     g.add_argument("--mt", type=unit_interval, help="memorability threshold MT (default 0.5)")
     g.add_argument("--st", type=unit_interval, help="staticity threshold ST (default 0.6)")
     g.add_argument("--et", type=unit_interval, help="entropy threshold ET (default 0.4)")
     g.add_argument("--all-scores", action="store_true", default=None,
                    help="compute every score of every frame, even after it fails (for sweeps and reports)")
-    mode = g.add_mutually_exclusive_group()
-    mode.add_argument("--fast", dest="mode", action="store_const", const="fast",
-                      help="int8 memorability surrogate, fp32 only for frames near MT: exact mode's decisions "
-                           "within the surrogate's measured error (needs `memlog models prepare resmem-int8`)")
-    mode.add_argument("--paper-literal", dest="mode", action="store_const", const="paper",
-                      help="the literal pipeline: scikit-image entropy, all crops, no early exit (slow; reference)")
-    g.add_argument("--no-refine", dest="fast_refine", action="store_false", default=None,
-                   help="with --fast: the int8 estimate decides every frame alone (faster near MT; decisions "
-                        "within its error of MT may differ from exact mode)")
-    g.add_argument("--normalize", choices=["all", "static"], help="divide MS/ES by all pixels (paper) or static pixels")
-    g.add_argument("--duplicates", choices=["identical", "near", "off"],
-                   help="frames that repeat the previous one share its scoring (the record names the frame it "
-                        "copies): identical = pixel-identical frames only (default, exact); near = also frames "
-                        "within --near-distance on the thumbnail (approximate, only with --fast); off")
-    g.add_argument("--near-distance", type=open_unit_interval, metavar="D",
-                   help="--duplicates near: largest cosine distance between the 64x32 thumbnails of a frame and "
-                        "the previous one (default 0.01)")
-    add_max_pixels(g)  # type: ignore[arg-type]
-    g.add_argument("--threads", type=nonneg_int, help="ONNX Runtime threads per process (default 0: every core)")
-    g.add_argument("--device", choices=["auto", "cpu", "cuda"],
-                   help="where the models run (default auto: a CUDA GPU when onnxruntime-gpu sees one, else the CPU)")
+    perf = groups["performance"]
+    if workers is not None:
+        workers(perf)
+    fast = perf.add_argument("--fast", dest="mode", action="store_const", const="fast",
+                             help="int8 memorability surrogate, fp32 only for frames near MT: exact mode's decisions "
+                                  "within the surrogate's measured error (needs `memlog models prepare resmem-int8`)")
+    perf.add_argument("--no-refine", dest="fast_refine", action="store_false", default=None,
+                      help="with --fast: the int8 estimate decides every frame alone (faster near MT; decisions "
+                           "within its error of MT may differ from exact mode)")
+    perf.add_argument("--duplicates", choices=["identical", "near", "off"],
+                      help="frames that repeat the previous one share its scoring (the record names the frame it "
+                           "copies): identical = pixel-identical frames only (default, exact); near = also frames "
+                           "within --near-distance on the thumbnail (approximate, only with --fast); off")
+    perf.add_argument("--near-distance", type=open_unit_interval, metavar="D",
+                      help="--duplicates near: largest cosine distance between the 64x32 thumbnails of a frame and "
+                           "the previous one (default 0.01)")
+    perf.add_argument("--threads", type=nonneg_int, metavar="N",
+                      help="ONNX Runtime threads per process (default 0: every core)")
+    perf.add_argument("--device", choices=["auto", "cpu", "cuda"],
+                      help="where the models run (default auto: a CUDA GPU when onnxruntime-gpu sees one, else the "
+                           "CPU)")
+    add_max_pixels(perf)
+    exp = groups["experimental"]
+    literal = exp.add_argument("--paper-literal", dest="mode", action="store_const", const="paper",
+                               help="(experimental) the literal pipeline: scikit-image entropy, all crops, no early "
+                                    "exit (slow; a reference for measurements; not with --fast)")
+    exp.add_argument("--normalize", choices=["all", "static"],
+                     help="(experimental) divide MS/ES by all pixels (the paper, default) or by static pixels only")
+    groups.exclusive(fast, literal)
 
 
-def add_window_flags(p: argparse.ArgumentParser, what: str = "score") -> None:
-    g = p.add_argument_group("which frames")
+def add_window_flags(g: argparse._ActionsContainer, what: str = "score") -> None:
+    """-t, --start, --end, --stride: the frames a command reads."""
     g.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC",
                    help=f"camera topic to {what} (repeatable; default: every camera topic)")
     g.add_argument("--start", type=log_time, metavar="TIME",
                    help="first log time: seconds since the epoch, or +seconds after the log starts")
     g.add_argument("--end", type=log_time, metavar="TIME", help="end of the window (exclusive), same forms")
-    g.add_argument("--stride", type=positive_int, default=1, help="every n-th frame of each topic (default 1)")
+    g.add_argument("--stride", type=positive_int, default=1, metavar="N",
+                   help="every n-th frame of each topic (default 1)")
 
 
-def add_selection_flags(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("frame selection (the --config file's [select] table < flags)")
+def add_select_flags(g: argparse._ActionsContainer) -> None:
+    """--select and --keep-fraction: how much of the drive the map keeps (shown first by ``map``)."""
     g.add_argument("--select", choices=["paper", "segment"],
-                   help="segment (default; won on the shared Nordland data): the best frame of each place segment "
-                        "by the three scores, so no stretch of the drive is lost; paper: keep the frames passing "
-                        "MT/ST/ET (fixed, or calibrated with --keep-fraction)")
-    g.add_argument("--keep-fraction", type=fraction,
-                   help="pick thresholds (paper) or segment size (segment) so about this fraction is kept "
-                        "(segment default: 0.25)")
-    g.add_argument("--spacing-m", type=positive_float, help="segment: one frame per this many metres travelled")
-    g.add_argument("--spacing-s", type=positive_float, help="segment: one frame per this many seconds")
+                   help="segment (default): the best frame of each place segment by the three scores, so no "
+                        "stretch of the drive is lost; paper: the frames passing MT/ST/ET")
+    g.add_argument("--keep-fraction", type=fraction, metavar="F",
+                   help="keep about this fraction of the frames: segment size (segment, default 0.25) or "
+                        "thresholds (paper)")
+
+
+def add_selection_flags(groups: FlagGroups) -> None:
+    """The rest of frame selection (selection), and distinctiveness (experimental)."""
+    g = groups["selection"]
+    g.add_argument("--spacing-m", type=positive_float, metavar="M",
+                   help="segment: one frame per this many metres travelled")
+    g.add_argument("--spacing-s", type=positive_float, metavar="S", help="segment: one frame per this many seconds")
     g.add_argument("--segment-by", choices=["auto", "distance", "time", "count", "view"], help="segment boundaries")
     g.add_argument("--dedup", type=cosine_distance, metavar="DIST",
                    help="drop kept frames within this cosine distance (thumbnail descriptor) of an already kept one "
                         "(loops, stops)")
-    g.add_argument("--dt", type=unit_interval,
-                   help="paper mode: also keep only frames whose distinctiveness (rank in the drive, 0..1) is >= DT "
-                        "(computed from the reference drive's descriptors)")
-    g.add_argument("--distinct-weight", type=nonneg_float, metavar="W",
-                   help="segment mode: weight of distinctiveness in the combined score (0 = off; with "
-                        "weights = [0, 0, 0] in the --config file's [select] table it selects by distinctiveness "
-                        "alone)")
+    exp = groups["experimental"]
+    exp.add_argument("--dt", type=unit_interval,
+                     help="(experimental) paper mode: also keep only frames whose distinctiveness (rank in the "
+                          "drive, 0..1) is >= DT (computed from the reference drive's descriptors; off: it did not "
+                          "beat uniform maps)")
+    exp.add_argument("--distinct-weight", type=nonneg_float, metavar="W",
+                     help="(experimental) segment mode: weight of distinctiveness in the combined score (0 = off; "
+                          "with weights = [0, 0, 0] in the --config file's [select] table it selects by "
+                          "distinctiveness alone)")
 
 
 # -- builders -------------------------------------------------------------------------------------
