@@ -4,7 +4,8 @@
 Every row is matched by ``memlog.descriptors.sequence.match_tables`` — the function ``memlog
 localize`` and ``memlog evaluate`` call — on maps written by ``memlog map`` (read back from their
 Parquet, as localize reads them) and query descriptors made the way localize makes them
-(``describer_for(map)``: the map's descriptor and whitening).
+(``describer_for(map)``: the map's descriptor and whitening, patch features projected by the
+map's PCA). "default" re-ranks by patch features where the map stores them (DINOv2 maps).
 
 Data (``../shared/data``): Stromovka autumn map / winter query (1024x384, 101 places, DINOv2),
 Nordland summer map / winter query (64x32, 800 places, thumbnails); maps of every frame
@@ -36,9 +37,11 @@ SHARED = ROOT.parent / "shared" / "data"
 #: the settings compared (named configs): single frames, the matcher's defaults before they were
 #: measured at camera resolution, a fixed speed, and today's defaults
 SETTINGS: dict[str, dict[str, Any]] = {
-    "single frames": {"length": 0},
-    "before: speeds 0:3, K 3, no prior": {"speeds": (0.0, 3.0), "candidates": 3, "speed_prior": 0.0},
-    "speed 1:1, K 10": {"speeds": (1.0, 1.0)},
+    "single frames": {"length": 0, "rerank": False},
+    "before: speeds 0:3, K 3, no prior": {"speeds": (0.0, 3.0), "candidates": 3, "speed_prior": 0.0,
+                                          "rerank": False},
+    "speed 1:1, K 10": {"speeds": (1.0, 1.0), "rerank": False},
+    "default, --no-rerank": {"rerank": False},
     "default": {},
 }
 PAIRS = {"stromovka": ("stromovka_autumn.mcap", "stromovka_winter.mcap", "stromovka_truth.json"),
@@ -66,13 +69,21 @@ def metrics(indices: np.ndarray, confidence: np.ndarray, truth: list[set[int]]) 
 def _map(cache: Path, pair: str, which: str) -> Path:
     """``memlog map`` of the pair's reference at a keep fraction (written once into ``cache``)."""
     out = cache / f"{pair}-{which}.mcap"
-    if not out.with_suffix(".parquet").is_file():
+    if not out.with_suffix(".parquet").is_file() or not _current(out.with_suffix(".parquet")):
         from memlog.cli.app import main as memlog
 
         ref = SHARED / PAIRS[pair][0]
         if memlog(["-q", "map", str(ref), "-o", str(out), "--keep-fraction", str(FRACTIONS[which])]) != 0:
             raise SystemExit(f"memlog map {ref} failed")
     return out.with_suffix(".parquet")
+
+
+def _current(parquet: Path) -> bool:
+    """A cached map stores what today's ``memlog map`` stores (patch features with DINOv2)."""
+    from memlog.outputs.descriptor_table import read_descriptors
+
+    t = read_descriptors(parquet)
+    return t.patches is not None or not t.meta.kind.startswith("dinov2")
 
 
 def _query(cache: Path, pair: str, parquet: Path) -> Any:
@@ -87,9 +98,12 @@ def _query(cache: Path, pair: str, parquet: Path) -> Any:
     qlog = SHARED / PAIRS[pair][1]
     still = map_still_distance(ref, parquet, SequenceConfig())
     path = parquet.with_suffix(".query.parquet")
-    qt = read_cached(path, qlog, ref.meta, FrameWindow(), still) if path.is_file() else None
+    pat = ref.patch_pca is not None
+    qt = read_cached(path, qlog, ref.meta, FrameWindow(), still, patches=pat,
+                     patch_pca=ref.patch_pca) if path.is_file() else None
     if qt is None:
-        qt, _report = describe_log(qlog, describer_for(ref), FrameWindow(), still_distance=still)
+        qt, _report = describe_log(qlog, describer_for(ref), FrameWindow(), still_distance=still, patches=pat,
+                                   patch_pca=ref.patch_pca)
         write_descriptors(path, qt)
     return ref, qt
 
@@ -148,7 +162,7 @@ def tab_variants(cache: Path) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-matcher-defaults"))
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-matcher-defaults-2"))
     ap.add_argument("--maps", nargs="+", default=list(FRACTIONS), choices=list(FRACTIONS))
     ap.add_argument("--variants", action="store_true", help="also the Nordland drive variants")
     a = ap.parse_args()

@@ -46,11 +46,22 @@ def _best(matches: Path) -> dict[int, int]:
 def test_map_then_localize_runs_at_camera_resolution(stromovka: dict[str, Path]) -> None:
     from memlog.outputs.descriptor_table import read_descriptors
 
-    meta = read_descriptors(stromovka["parquet"]).meta
+    m = read_descriptors(stromovka["parquet"])
+    meta = m.meta
     assert meta.kind.startswith("dinov2") and meta.whitening, meta  # what any real camera gets
+    # the map stores the re-rank's patch features, projected by a PCA fitted on its own frames
+    assert m.patches is not None and m.patch_pca is not None and m.patches.shape == (len(m), 64, m.patch_pca.dim)
     rows = pq.read_table(stromovka["matches"]).to_pydict()
     assert len(set(rows["query_id"])) == 101
     seq = json.loads(pq.read_table(stromovka["matches"]).schema.metadata[b"memlog.sequence"])
+    # the places were re-ranked by patch features (best first) and the confidence is the re-rank's margin
+    assert seq["rerank"]["by"] == "patches" and seq["rerank"]["patch_pca"] == m.patch_pca.sha256
+    by_query: dict[int, list[tuple[int, float]]] = {}
+    for q, k, s in zip(rows["query_id"], rows["rank"], rows["rerank_score"]):
+        by_query.setdefault(q, []).append((k, s))
+    for ranks in by_query.values():
+        scores = [s for _k, s in sorted(ranks)]
+        assert scores == sorted(scores, reverse=True)
     # truthful metadata: the window used, every query matched as a sequence, no fallback
     assert seq["sequence_queries"] == 101 and seq["single_queries"] == 0 and seq["fallback"] is None
     assert seq["length_used"] >= seq["length"] and set(rows["matched_by"]) == {"sequence"}

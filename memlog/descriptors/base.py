@@ -118,6 +118,17 @@ class Describer(ABC):
         """Parameters that change the descriptor values (recorded in :class:`DescriptorMeta`)."""
         return {}
 
+    @property
+    def gives_patches(self) -> bool:
+        """Whether :meth:`describe_patches` gives patch features (for re-ranking)."""
+        return False
+
+    def describe_patches(self, images_bgr: Sequence[npt.NDArray[Any]]) -> tuple[F32, F32 | None]:
+        """Descriptors of ``images_bgr`` and, when the describer has them
+        (:attr:`gives_patches`), each image's pooled patch features ``[N, P, D]`` from the same
+        network pass (:mod:`memlog.descriptors.patches`); None otherwise."""
+        return self.describe(images_bgr), None
+
     def meta(self) -> DescriptorMeta:
         """The metadata recorded next to descriptors made by this describer."""
         return DescriptorMeta(self.kind, self.version, self.dim, self.model_sha256, dict(self.params))

@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from memlog.descriptors.base import Describer, as_bgr_list, l2_normalize
+from memlog.descriptors.patches import GRID, PATCH_LAYER, pool_patches
 from memlog.errors import DescriptorError
 from memlog.models.dinov2 import (
     IMAGENET_MEAN_RGB,
@@ -166,23 +167,51 @@ class DinoV2Describer(Describer):
     def forward(self, x: F32) -> F32:
         """Tokens ``[B, 257, 384]`` (of the final output, or of block ``layer``) of an input batch
         made by :func:`preprocess`."""
-        try:
-            out: F32 = self._session.run([self._output], {INPUT_NAME: x})[0]
-        except Exception as exc:
-            raise DescriptorError(f"DINOv2 inference failed: {exc}") from None
-        return out
+        return self._run([self._output], x)[0]
 
     def describe(self, images_bgr: Sequence[npt.NDArray[Any]]) -> F32:
+        return self._describe(images_bgr, patches=False)[0]
+
+    @property
+    def gives_patches(self) -> bool:
+        return True
+
+    def describe_patches(self, images_bgr: Sequence[npt.NDArray[Any]]) -> tuple[F32, F32 | None]:
+        """Descriptors and the frames' block-:data:`~memlog.descriptors.patches.PATCH_LAYER`
+        patch tokens pooled to an 8 x 8 grid (``[N, 64, 384]``), from the same network pass (of
+        the whole frame, the first scale)."""
+        return self._describe(images_bgr, patches=True)
+
+    def _describe(self, images_bgr: Sequence[npt.NDArray[Any]], patches: bool) -> tuple[F32, F32 | None]:
         imgs = as_bgr_list(images_bgr)
         out = np.zeros((len(imgs), WIDTH), dtype=np.float32)
+        pooled = np.zeros((len(imgs), GRID * GRID, WIDTH), dtype=np.float32) if patches else None
+        names = [self._output]
+        if patches and layer_output(PATCH_LAYER) != self._output:
+            names.append(layer_output(PATCH_LAYER))
         for start in range(0, len(imgs), self.batch_size):
             group = imgs[start : start + self.batch_size]
             acc = np.zeros((len(group), WIDTH), dtype=np.float32)
+            whole: F32 | None = None  # the patch layer's tokens of the whole frames
             for scale in self.scales:
                 x, mask = preprocess([centre_crop(im, scale) for im in group], self.resize)
-                acc += pool_tokens(self.forward(x), self.pooling, self.gem_p, mask)
+                outs = self._run(names if scale == 1.0 and whole is None else names[:1], x)
+                if scale == 1.0 and whole is None:
+                    whole = outs[-1]
+                acc += pool_tokens(outs[0], self.pooling, self.gem_p, mask)
             out[start : start + len(group)] = acc if len(self.scales) == 1 else l2_normalize(acc)
-        return out
+            if pooled is not None:
+                if whole is None:  # every scale was a crop
+                    whole = self._run(names[-1:], preprocess(group, self.resize)[0])[0]
+                pooled[start : start + len(group)] = pool_patches(whole)
+        return out, pooled
+
+    def _run(self, names: list[str], x: F32) -> list[F32]:
+        try:
+            outs: list[F32] = self._session.run(names, {INPUT_NAME: x})
+        except Exception as exc:
+            raise DescriptorError(f"DINOv2 inference failed: {exc}") from None
+        return outs
 
 
 def pool_tokens(

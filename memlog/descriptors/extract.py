@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from memlog.descriptors.base import Describer
+from memlog.descriptors.patches import PatchPCA, PatchPCAFitter, PatchStore
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import WhitenedDescriber, Whitening, WhiteningFitter
 from memlog.errors import ImageDecodeError
@@ -45,11 +46,14 @@ def _batches(frames: Iterable[Frame], n: int) -> Iterator[list[Frame]]:
 
 def describe_frames(
     frames: Iterable[Frame], describer: Describer, reader: LogReader | None = None, batch: int = 16,
-    views: list[np.ndarray] | None = None,
+    views: list[np.ndarray] | None = None, patches: list[np.ndarray] | None = None,
+    patch_pca: PatchPCA | None = None,
 ) -> tuple[list[Frame], np.ndarray]:
     """Descriptors of ``frames`` ([N, dim] float32); frames that do not decode are reported
     through ``reader`` (when given) and left out. ``views``: receives each described frame's
-    view vector (:func:`memlog.scoring.scorer.view_vector`), for where the drive stood still."""
+    view vector (:func:`memlog.scoring.scorer.view_vector`), for where the drive stood still.
+    ``patches``: receives, batch by batch, the described frames' pooled patch features when the
+    describer gives them (float16; projected by ``patch_pca`` when given, else raw)."""
     kept: list[Frame] = []
     rows: list[np.ndarray] = []
     for group in _batches(frames, batch):
@@ -63,7 +67,13 @@ def describe_frames(
                     reader.decode_error(f, exc)
         if views is not None:
             views.extend(view_vector(img).astype(np.float32) for img in imgs)
-        if imgs:
+        if imgs and patches is not None and describer.gives_patches:
+            d, p = describer.describe_patches(imgs)
+            rows.append(d)
+            if p is not None:
+                raw = p.astype(np.float16)  # what a cached table stores: projected alike either way
+                patches.append(patch_pca.apply(raw) if patch_pca is not None else raw)
+        elif imgs:
             rows.append(describer.describe(imgs))
     desc = np.concatenate(rows) if rows else np.zeros((0, describer.dim), np.float32)
     return kept, desc
@@ -103,12 +113,15 @@ def build_table(
     whitening: Whitening | None = None,
     moving: np.ndarray | None = None,
     stops: Mapping[str, Any] | None = None,
+    patches: np.ndarray | None = None,
+    patch_pca: PatchPCA | None = None,
 ) -> DescriptorTable:
     """A DescriptorTable of described frames, with their scores and interpolated positions.
     With ``whitening``, ``descriptors`` are already whitened by it and the table carries it;
     ``moving``: the frames' :func:`moving_indices` (the table's ``moving_index``), ``stops`` how
     its stops were found (recorded as ``extra["stops"]``; default
-    :func:`~memlog.scoring.motion.stop_rule`: by the images with the default ``still_distance``)."""
+    :func:`~memlog.scoring.motion.stop_rule`: by the images with the default ``still_distance``);
+    ``patches``/``patch_pca``: the frames' patch features and the PCA that projected them."""
     def score(name: str) -> np.ndarray:
         if scores is None:
             return np.full(len(frames), np.nan)
@@ -145,6 +158,8 @@ def build_table(
         extra=ex,
         whitening=whitening,
         moving_index=moving,
+        patches=patches,
+        patch_pca=patch_pca if patches is not None else None,
     )
 
 
@@ -155,12 +170,15 @@ def describe_log(
     *,
     scores: Mapping[str, Mapping[int, Mapping[str, Any]]] | None = None,
     still_distance: float = STILL_DISTANCE,
+    patches: bool = True,
+    patch_pca: PatchPCA | None = None,
 ) -> tuple[DescriptorTable, ReadReport]:
     """Descriptors of the frames of ``window`` (default: the first camera topic, every frame),
     with positions when the log has them, and the read report (damage found); the moving index
     with stops found from the log's motion, else with ``still_distance`` from the images
     (:func:`moving_indices`). The table's ``extra`` records the log, its identity, the window and
-    how stops were found."""
+    how stops were found. ``patches``: keep the frames' patch features when the describer gives
+    them, projected by ``patch_pca`` (a map's) when given, else raw."""
     window = window or FrameWindow()
     with open_log(log) as reader:
         cams = reader.check_camera_topics(window.topics)
@@ -171,11 +189,13 @@ def describe_log(
         frames = progress(reader.frames(w.topics, w.start_ns, w.end_ns, w.stride), total=reader.count_frames(w),
                           desc="describe", unit="frame")
         views: list[np.ndarray] = []
-        kept, desc = describe_frames(frames, describer, reader, views=views)
+        pp: list[np.ndarray] | None = [] if patches and describer.gives_patches else None
+        kept, desc = describe_frames(frames, describer, reader, views=views, patches=pp, patch_pca=patch_pca)
         extra = {"log": str(reader.path), "log_identity": log_identity(log), "window": w.to_dict()}
         moving, stops = moving_indices(kept, views, still_distance, motion)
+        pat = (np.concatenate(pp) if pp else None) if pp is not None and kept else None
         return build_table(kept, desc, describer, scores=scores, track=track, extra=extra,
-                           moving=moving, stops=stops), reader.report
+                           moving=moving, stops=stops, patches=pat, patch_pca=patch_pca), reader.report
 
 
 class ReferenceDescribing:
@@ -186,18 +206,27 @@ class ReferenceDescribing:
     frames' descriptors are stored (frames without their pixels). ``whitening``: a transform
     fitted beforehand (e.g. with the distinctiveness pass) to apply instead of fitting one;
     ``known``: raw descriptors already computed, by ``(topic, frame index)``, used instead of
-    describing again. :meth:`result` returns the kept frames, their (whitened) descriptors and
-    the transform (None without whitening).
+    describing again (``known_patches``: their raw pooled patch features). :meth:`result`
+    returns the kept frames, their (whitened) descriptors and the transform (None without
+    whitening). When the describer gives patch features (``patches``), the kept frames' are kept
+    aside (:class:`~memlog.descriptors.patches.PatchStore`) and :meth:`patch_result` gives them
+    projected by a PCA fitted on them.
     """
 
     def __init__(self, describer: Describer, reader: LogReader, *, fit_whitening: bool = False,
                  whiten_dim: int | None = None, whitening: Whitening | None = None,
-                 known: Mapping[tuple[str, int], np.ndarray] | None = None, batch: int = 16) -> None:
+                 known: Mapping[tuple[str, int], np.ndarray] | None = None,
+                 known_patches: Mapping[tuple[str, int], np.ndarray] | None = None,
+                 patches: bool = True, batch: int = 16) -> None:
         self.describer, self.reader, self.batch = describer, reader, batch
         self.whitening = whitening
         self.whiten_dim = whiten_dim
         self.fitter = WhiteningFitter(describer.dim) if fit_whitening and whitening is None else None
         self.known = known or {}
+        self.known_patches = known_patches or {}
+        self.patches = patches and describer.gives_patches
+        self.store = PatchStore() if self.patches else None
+        self.patch_fitter: PatchPCAFitter | None = None
         self.frames: list[Frame] = []
         self.rows: list[np.ndarray] = []
         self._pending: list[tuple[Frame, Any, bool]] = []
@@ -210,7 +239,10 @@ class ReferenceDescribing:
     def add(self, frame: Frame, keep: bool) -> None:
         if not keep and self.fitter is None:
             return
-        row = self.known.get((frame.topic, frame.index))
+        key = (frame.topic, frame.index)
+        row = self.known.get(key)
+        if row is not None and keep and self.patches and key not in self.known_patches:
+            row = None  # its patches are not known: describe it
         if row is None:
             try:
                 img = frame.decode_bgr()
@@ -227,15 +259,29 @@ class ReferenceDescribing:
             return
         todo = [k for k, (_, v, _) in enumerate(self._pending) if v.ndim != 1]
         desc = np.zeros((len(self._pending), self.describer.dim), np.float32)
+        pooled: dict[int, np.ndarray] = {}
         if todo:
-            desc[todo] = self.describer.describe([self._pending[k][1] for k in todo])
-        for k, (_, v, _) in enumerate(self._pending):
+            imgs = [self._pending[k][1] for k in todo]
+            want = self.patches and any(self._pending[k][2] for k in todo)
+            d, p = self.describer.describe_patches(imgs) if want else (self.describer.describe(imgs), None)
+            desc[todo] = d
+            if p is not None:
+                pooled.update(zip(todo, p))
+        for k, (f, v, kp) in enumerate(self._pending):
             if v.ndim == 1:
                 desc[k] = v
+                if kp and self.patches:
+                    pooled[k] = self.known_patches[(f.topic, f.index)]
         if self.fitter is not None:
             self.fitter.add(desc)
         keep = np.array([kp for _, _, kp in self._pending], dtype=bool)
         self.rows.append(desc[keep])
+        if self.store is not None and keep.any():
+            kept = np.stack([pooled[int(k)] for k in np.flatnonzero(keep)]).astype(np.float16)  # as stored
+            if self.patch_fitter is None:
+                self.patch_fitter = PatchPCAFitter(int(kept.shape[-1]))
+            self.patch_fitter.add(kept)
+            self.store.add(kept)
         self.frames.extend(f for f, _, kp in self._pending if kp)
         self._pending.clear()
 
@@ -248,7 +294,17 @@ class ReferenceDescribing:
             desc = self.whitening.apply(desc)
         return self.frames, desc, self.whitening
 
-
+    def patch_result(self) -> tuple[np.ndarray | None, PatchPCA | None]:
+        """The kept frames' patch features projected by a PCA fitted on them, and the PCA;
+        (None, None) when the describer gives none or fewer than two patches were kept."""
+        self.flush()
+        pca = self.patch_fitter.fit() if self.patch_fitter is not None else None
+        if self.store is None or pca is None:
+            return None, None
+        try:
+            return self.store.projected(pca), pca
+        finally:
+            self.store.close()
 
 
 def drive_distinctiveness(

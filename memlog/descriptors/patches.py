@@ -21,6 +21,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
+import tempfile
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,7 +30,8 @@ import numpy.typing as npt
 
 from memlog.errors import DescriptorError
 
-__all__ = ["PATCH_LAYER", "GRID", "PATCH_DIM", "PatchPCA", "pool_patches", "pair_scores"]
+__all__ = ["PATCH_LAYER", "GRID", "PATCH_DIM", "PatchPCA", "PatchPCAFitter", "PatchStore", "pool_patches",
+           "pair_scores"]
 
 F32 = npt.NDArray[np.float32]
 F16 = npt.NDArray[np.float16]
@@ -77,17 +79,13 @@ class PatchPCA:
     @classmethod
     def fit(cls, pooled: npt.ArrayLike, dim: int = PATCH_DIM) -> PatchPCA:
         """Fit on pooled patches ``[B, P, D]`` (or ``[N, D]``); at most ``dim`` directions."""
-        x = np.asarray(pooled, dtype=np.float64)
-        x = x.reshape(-1, x.shape[-1])
-        if x.shape[0] < 2:
+        x = np.asarray(pooled)
+        fitter = PatchPCAFitter(int(x.shape[-1]))
+        fitter.add(x)
+        pca = fitter.fit(dim)
+        if pca is None:
             raise DescriptorError("a patch PCA needs at least two patches")
-        mean = x.mean(axis=0)
-        cov = np.cov(x - mean, rowvar=False)
-        vals, vecs = np.linalg.eigh(cov)
-        order = np.argsort(vals)[::-1][: min(dim, x.shape[1], x.shape[0] - 1)]
-        comps = vecs[:, order].T
-        comps *= np.where(comps[np.arange(len(comps)), np.abs(comps).argmax(axis=1)] < 0, -1.0, 1.0)[:, None]
-        return cls(mean, comps)
+        return pca
 
     def apply(self, pooled: npt.ArrayLike) -> F16:
         """``[B, P, D]`` pooled patches -> ``[B, P, dim]`` centred, projected, L2-normalised, float16."""
@@ -119,6 +117,77 @@ class PatchPCA:
         if d.get("sha256") != pca.sha256:
             raise DescriptorError("the stored patch PCA does not match its sha256 (the file was changed)")
         return pca
+
+
+class PatchPCAFitter:
+    """Fits a :class:`PatchPCA` from pooled patches added batch by batch (their first and second
+    moments in float64: memory does not grow with the patches)."""
+
+    def __init__(self, dim_in: int) -> None:
+        self.n = 0
+        self.sum = np.zeros(dim_in)
+        self.outer = np.zeros((dim_in, dim_in))
+
+    def add(self, pooled: npt.ArrayLike) -> None:
+        x = np.asarray(pooled, dtype=np.float64)
+        x = x.reshape(-1, x.shape[-1])
+        if x.shape[1] != len(self.sum):
+            raise DescriptorError(f"patches are {x.shape[1]}-d but the patch PCA is fitted on {len(self.sum)}-d")
+        self.n += len(x)
+        self.sum += x.sum(axis=0)
+        self.outer += x.T @ x
+
+    def fit(self, dim: int = PATCH_DIM) -> PatchPCA | None:
+        """The PCA of the patches added (at most ``dim`` directions); None with fewer than two."""
+        if self.n < 2:
+            return None
+        mean = self.sum / self.n
+        cov = (self.outer - self.n * np.outer(mean, mean)) / (self.n - 1)
+        vals, vecs = np.linalg.eigh(cov)
+        order = np.argsort(vals)[::-1][: min(dim, len(mean), self.n - 1)]
+        comps = vecs[:, order].T
+        comps *= np.where(comps[np.arange(len(comps)), np.abs(comps).argmax(axis=1)] < 0, -1.0, 1.0)[:, None]
+        return PatchPCA(mean, comps)
+
+
+class PatchStore:
+    """Pooled patches kept aside (float16, in a temporary file: bounded memory) until the PCA
+    that projects them is known; :meth:`projected` reads them back block by block."""
+
+    def __init__(self) -> None:
+        self._file: Any = None
+        self.rows = 0
+        self.shape: tuple[int, int] | None = None
+
+    def add(self, pooled: npt.ArrayLike) -> None:
+        x = np.ascontiguousarray(pooled, dtype=np.float16)
+        if not len(x):
+            return
+        if self._file is None:
+            self._file = tempfile.TemporaryFile()
+            self.shape = (int(x.shape[1]), int(x.shape[2]))
+        if x.shape[1:] != self.shape:
+            raise DescriptorError(f"patches of shape {x.shape[1:]} added to a store of {self.shape}")
+        self._file.write(x.tobytes())
+        self.rows += len(x)
+
+    def projected(self, pca: PatchPCA, block: int = 256) -> F16:
+        """Every stored row projected by ``pca`` (:meth:`PatchPCA.apply`), ``[rows, P, dim]``."""
+        out = np.zeros((self.rows, GRID * GRID if self.shape is None else self.shape[0], pca.dim), np.float16)
+        if self._file is None or self.shape is None:
+            return out
+        self._file.seek(0)
+        per_row = self.shape[0] * self.shape[1]
+        for a in range(0, self.rows, block):
+            m = min(block, self.rows - a)
+            raw = np.frombuffer(self._file.read(m * per_row * 2), dtype=np.float16).reshape(m, *self.shape)
+            out[a : a + m] = pca.apply(raw)
+        return out
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
 
 
 def pair_scores(query: npt.ArrayLike, reference: npt.ArrayLike, q_rows: npt.ArrayLike, r_rows: npt.ArrayLike

@@ -1142,10 +1142,21 @@ def match_tables(
         span = float(rc.max() - rc.min()) + 1.0
         rc = rc + ref_runs * 4.0 * span
     pace = drive_pace(query, reference) if coordinate == "frames" else 1.0
+    query, why_not = _patch_plan(cfg, query, reference)
+    places = max(k, RERANK_PLACES) if why_not is None else k
     res = match_sequences(query.descriptors[perm], qc[perm], index.db if index is not None else reference.descriptors,
-                          rc, cfg, k=k, runs=labels[perm], ref_unit=unit, coordinate=coordinate, index=index,
+                          rc, cfg, k=places, runs=labels[perm], ref_unit=unit, coordinate=coordinate, index=index,
                           nprobe=nprobe, rerank=rerank, standing=None if standing is None else standing[perm],
                           ref_mask=None if index is not None else ref_mask, pace=pace)
+    if why_not is None:
+        assert query.patches is not None and reference.patches is not None and reference.patch_pca is not None
+        map_rows = (np.flatnonzero(np.asarray(ref_mask, dtype=bool)) if ref_mask is not None
+                    else np.arange(len(reference), dtype=np.int64))
+        res = rerank_by_patches(res, query.descriptors[perm], reference.descriptors, query.patches[perm],
+                                reference.patches, qc[perm], rc, map_rows, labels[perm], cfg, k, unit)
+        res.info["rerank"] = {"by": "patches", "places": places, "patch_pca": reference.patch_pca.sha256}
+    else:
+        res.info["rerank"] = {"off": why_not}
     inv = np.empty_like(perm)
     inv[perm] = np.arange(len(perm))
     res = res.take(inv)
@@ -1158,6 +1169,23 @@ def match_tables(
 
 
 RERANK_BLOCK = 64  # query rows re-ranked per block (their pairs scored once each)
+RERANK_PLACES = 20  # places per query the patch re-rank orders (the best of the descriptor match)
+
+
+def _patch_plan(cfg: SequenceConfig, query: DescriptorTable, reference: DescriptorTable
+                ) -> tuple[DescriptorTable, str | None]:
+    """The query (its raw patches projected by the map's PCA) and why the patch re-rank does not
+    run (None: it runs)."""
+    if not cfg.rerank:
+        return query, "turned off (--no-rerank)"
+    if reference.patches is None or reference.patch_pca is None:
+        return query, (f"the map stores no patch features ({reference.meta.kind} descriptors give none, or the map "
+                       "was written before memlog stored them)")
+    query = query.projected(reference.patch_pca)
+    if query.patches is None:
+        return query, "the query has no patch features in the map's PCA space (described with another descriptor " \
+                      "or another map's PCA)"
+    return query, None
 
 
 def rerank_by_patches(res: SequenceMatch, q_desc: F32, r_desc: F32, q_patches: npt.NDArray[Any],

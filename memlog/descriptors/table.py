@@ -7,13 +7,14 @@ Parquet by :mod:`memlog.outputs.descriptor_table`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from memlog.descriptors.base import DescriptorMeta
+from memlog.descriptors.patches import GRID, PatchPCA
 from memlog.descriptors.whitening import Whitening
 from memlog.errors import DescriptorError
 
@@ -41,6 +42,10 @@ class DescriptorTable:
     stops from the log's motion, else its images, :func:`memlog.scoring.motion.find_stops`),
     None when it is not known (the table was written before it was recorded, or frames were
     described out of order); sequence matching runs along it.
+    ``patches``: each frame's pooled patch features for re-ranking
+    (:mod:`memlog.descriptors.patches`), ``[N, 64, d]`` float16, or None: raw (``d`` the
+    network's width) while ``patch_pca`` is None, else projected by it (a map's are; a query's
+    must be projected by its map's PCA to be compared, :meth:`projected`).
     """
 
     topic: list[str]
@@ -57,6 +62,8 @@ class DescriptorTable:
     memlog_version: str | None = None
     whitening: Whitening | None = None
     moving_index: I64 | None = None
+    patches: npt.NDArray[np.float16] | None = None
+    patch_pca: PatchPCA | None = None
 
     def __post_init__(self) -> None:
         if self.whitening is not None and (self.whitening.sha256 != self.meta.whitening
@@ -79,6 +86,14 @@ class DescriptorTable:
         self.positions = {k: np.asarray(v, dtype=np.float64) for k, v in self.positions.items()}
         if self.moving_index is not None:
             self.moving_index = np.asarray(self.moving_index, dtype=np.int64)
+        if self.patches is not None:
+            self.patches = np.ascontiguousarray(self.patches, dtype=np.float16)
+            want = self.patch_pca.dim if self.patch_pca is not None else None
+            if (self.patches.ndim != 3 or len(self.patches) != n or self.patches.shape[1] != GRID * GRID
+                    or (want is not None and self.patches.shape[2] != want)):
+                raise DescriptorError(f"patches must be [{n}, {GRID * GRID}, {want or 'd'}], got {self.patches.shape}")
+        elif self.patch_pca is not None:
+            raise DescriptorError("a patch PCA without patches")
         used = [kind for kind, cols in POSITION_COLUMNS.items() if set(self.positions) & set(cols)]
         unknown = set(self.positions) - {c for cols in POSITION_COLUMNS.values() for c in cols}
         if unknown or len(used) > 1:
@@ -100,3 +115,13 @@ class DescriptorTable:
 
     def __len__(self) -> int:
         return int(self.descriptors.shape[0])
+
+    def projected(self, pca: PatchPCA | None) -> DescriptorTable:
+        """This table with its patches in ``pca``'s space: raw patches projected, patches of that
+        PCA kept, patches of another PCA (or with ``pca`` None, any projected ones) dropped."""
+        if self.patches is None or (pca is not None and self.patch_pca is not None
+                                    and self.patch_pca.sha256 == pca.sha256):
+            return self
+        if pca is None or self.patch_pca is not None or self.patches.shape[2] != pca.mean.shape[0]:
+            return replace(self, patches=None, patch_pca=None)
+        return replace(self, patches=pca.apply(self.patches), patch_pca=pca)

@@ -271,3 +271,11 @@ class WhitenedDescriber(Describer):
 
     def describe(self, images_bgr: Sequence[npt.NDArray[Any]]) -> F32:
         return self.whitening.apply(self.base.describe(images_bgr))
+
+    @property
+    def gives_patches(self) -> bool:
+        return self.base.gives_patches
+
+    def describe_patches(self, images_bgr: Sequence[npt.NDArray[Any]]) -> tuple[F32, F32 | None]:
+        desc, patches = self.base.describe_patches(images_bgr)
+        return self.whitening.apply(desc), patches

@@ -28,6 +28,14 @@ Whitened descriptors add ``memlog.whitening_sha256`` (the transform's sha256) an
 ``memlog.whitening``: the transform itself (JSON, arrays base64; checked against its sha256 on
 reading, see :mod:`memlog.descriptors.whitening`). A map's table also records the map it
 belongs to, ``memlog.map_sha256`` and ``memlog.map_file`` (:mod:`memlog.outputs.map_artefact`).
+
+Patch features for re-ranking (:mod:`memlog.descriptors.patches`), when the describer gives
+them: column ``patches`` (``fixed_size_list<float16>[P * d]``, plain-encoded, zstd), each row a
+frame's ``P`` pooled patches of ``d`` values; ``memlog.patch_shape`` is ``[P, d]`` and
+``memlog.patch_pca`` (JSON, arrays base64, checked against its sha256 on reading) the PCA that
+projected them — a map's patches are projected; a cached query or reference table of
+``memlog evaluate`` keeps them raw (no ``memlog.patch_pca``). Files without the column read with
+``patches`` None.
 Files are written atomically (temporary file in the same directory, then ``os.replace``).
 """
 
@@ -46,6 +54,7 @@ import pyarrow.parquet as pq
 
 from memlog._version import __version__
 from memlog.descriptors.base import DescriptorMeta, check_compatible
+from memlog.descriptors.patches import PatchPCA
 from memlog.descriptors.table import POSITION_COLUMNS, SCORE_COLUMNS, DescriptorTable
 from memlog.descriptors.whitening import Whitening
 from memlog.errors import DescriptorError
@@ -93,7 +102,7 @@ def _meta_to_schema(meta: DescriptorMeta, extra: Mapping[str, Any], memlog_versi
         raise DescriptorError(f"descriptor metadata is not JSON-serialisable: {exc}") from None
 
 
-def _descriptor_column(desc: F32, dtype: str) -> pa.FixedSizeListArray:
+def _descriptor_column(desc: npt.NDArray[np.floating[Any]], dtype: str) -> pa.FixedSizeListArray:
     """The ``[N, dim]`` matrix as a non-null fixed-size list column of ``dtype`` (no copy for float32)."""
     if dtype not in DTYPES:
         raise DescriptorError(f"descriptor dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
@@ -130,8 +139,15 @@ def descriptor_arrow(table: DescriptorTable, *, dtype: str = "float32") -> pa.Ta
                 add(name, pa.array(table.positions[name], type=pa.float64(), from_pandas=True))
     if table.moving_index is not None:
         add("moving_index", pa.array(table.moving_index, type=pa.int64()), nullable=False)
+    if table.patches is not None:
+        n, p, d = table.patches.shape
+        add("patches", _descriptor_column(table.patches.reshape(n, p * d), "float16"), nullable=False)
     schema_meta = _meta_to_schema(table.meta, table.extra, table.memlog_version or __version__, table.whitening)
     schema_meta[b"memlog.dtype"] = dtype.encode()
+    if table.patches is not None:
+        schema_meta[b"memlog.patch_shape"] = json.dumps(list(table.patches.shape[1:])).encode()
+        if table.patch_pca is not None:
+            schema_meta[b"memlog.patch_pca"] = table.patch_pca.to_json().encode()
     return pa.Table.from_arrays(arrays, schema=pa.schema(fields, metadata=schema_meta))
 
 
@@ -139,9 +155,13 @@ def write_arrow(where: str | os.PathLike[str] | BinaryIO, arrow: pa.Table) -> No
     """Write a table made by :func:`descriptor_arrow` as Parquet to ``where`` (a path or an open
     binary file, which stays open), with the storage this module describes. Not atomic: give it
     a temporary file (:func:`write_descriptors` does)."""
-    typ = arrow.schema.field("descriptor").type
-    row_bytes = max(1, typ.list_size * typ.value_type.bit_width // 8)
-    pq.write_table(arrow, where, compression="zstd", use_dictionary=["topic"],
+    row_bytes = 0
+    for name in ("descriptor", "patches"):
+        if name in arrow.schema.names:
+            typ = arrow.schema.field(name).type
+            row_bytes += typ.list_size * typ.value_type.bit_width // 8
+    row_bytes = max(1, row_bytes)
+    pq.write_table(arrow, where, compression="zstd", use_dictionary=["topic"],  # patches: plain, like descriptor
                    row_group_size=max(1, ROW_GROUP_BYTES // row_bytes))
 
 
@@ -266,7 +286,9 @@ def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
                 raise DescriptorError(f"{p} lacks column(s) {', '.join(missing)}")
             _check_descriptor_field(schema, meta.dim, p)
             desc = _read_matrix(pf, pf.metadata.num_rows, meta.dim, p)
-        table = pq.read_table(p, columns=[c for c in schema.names if c != "descriptor"], read_dictionary=["topic"])
+            patches, patch_pca = _read_patches(pf, schema, p)
+        table = pq.read_table(p, columns=[c for c in schema.names if c not in ("descriptor", "patches")],
+                              read_dictionary=["topic"])
         pa.default_memory_pool().release_unused()  # hand the batches' memory back before the caller's work
     except (OSError, pa.ArrowException) as exc:
         raise DescriptorError(f"could not read descriptor table {p}: {exc}") from None
@@ -298,7 +320,46 @@ def read_descriptors(path: str | os.PathLike[str]) -> DescriptorTable:
         memlog_version=version or None,
         whitening=whitening,
         moving_index=ints("moving_index") if "moving_index" in table.column_names else None,
+        patches=patches,
+        patch_pca=patch_pca,
     )
+
+
+def _read_patches(pf: pq.ParquetFile, schema: pa.Schema, path: Path
+                  ) -> tuple[npt.NDArray[np.float16] | None, PatchPCA | None]:
+    """The ``patches`` column as ``[n, P, d]`` float16 (filled batch by batch) and the PCA that
+    projected them; (None, None) in a file without patches."""
+    if "patches" not in schema.names:
+        return None, None
+    md = schema.metadata or {}
+    try:
+        shape = tuple(int(v) for v in json.loads(md[b"memlog.patch_shape"]))
+        pca = PatchPCA.from_json(md[b"memlog.patch_pca"]) if b"memlog.patch_pca" in md else None
+    except (KeyError, ValueError, TypeError) as exc:
+        raise DescriptorError(f"{path}: invalid patch metadata: {exc}") from None
+    except DescriptorError as exc:
+        raise DescriptorError(f"{path}: {exc}") from None
+    typ = schema.field("patches").type
+    if (len(shape) != 2 or not pa.types.is_fixed_size_list(typ) or typ.value_type != pa.float16()
+            or typ.list_size != shape[0] * shape[1] or (pca is not None and shape[1] != pca.dim)):
+        raise DescriptorError(f"{path}: patches column {typ} does not match its metadata (shape {shape})")
+    n = pf.metadata.num_rows
+    out = np.empty((n, shape[0] * shape[1]), dtype=np.float16)
+    start = 0
+    for batch in pf.iter_batches(batch_size=max(1, ROW_GROUP_BYTES // (2 * typ.list_size)), columns=["patches"],
+                                 use_threads=False):
+        col = batch.column(0)
+        values = col.flatten()
+        if col.null_count or values.null_count:
+            raise DescriptorError(f"{path}: the patches column holds nulls")
+        m = len(col)
+        if start + m > n:
+            raise DescriptorError(f"{path}: more patch rows than the file's {n} rows")
+        out[start : start + m] = values.to_numpy(zero_copy_only=True).reshape(m, -1)
+        start += m
+    if start != n:
+        raise DescriptorError(f"{path}: read {start} patch rows of {n}")
+    return out.reshape(n, *shape), pca
 
 
 def _strings(col: pa.ChunkedArray, path: Path) -> list[str]:
@@ -317,13 +378,15 @@ def _strings(col: pa.ChunkedArray, path: Path) -> list[str]:
 
 def read_cached(path: str | os.PathLike[str], log: str | os.PathLike[str], meta: DescriptorMeta,
                 window: FrameWindow,
-                still_distance: float = STILL_DISTANCE) -> DescriptorTable | None:
+                still_distance: float = STILL_DISTANCE, *, patches: bool = False,
+                patch_pca: PatchPCA | None = None) -> DescriptorTable | None:
     """The descriptor table cached at ``path`` when ``describe_log`` made it from ``log`` (same
     identity: path, size, modification time), with ``window``, a describer compatible with
     ``meta`` and the frames' ``moving_index``, its stops found as they are now with
     ``still_distance`` (``extra["stops"]``, :func:`~memlog.scoring.motion.stops_found_otherwise`:
-    by the same rule, from the log's motion when it has any); else None, saying why (``window.topics`` None: the
-    topics the table was made from)."""
+    by the same rule, from the log's motion when it has any), and, with ``patches``, the frames'
+    patch features (raw, or projected by ``patch_pca`` when given); else None, saying why
+    (``window.topics`` None: the topics the table was made from)."""
     p = Path(path)
     if not p.is_file():
         return None
@@ -346,6 +409,10 @@ def read_cached(path: str | os.PathLike[str], log: str | os.PathLike[str], meta:
     how = stops_found_otherwise(t.extra, still_distance)
     if how is not None:
         info(f"not reusing {p}: its stops were found {how}")
+        return None
+    if patches and (t.patches is None or (t.patch_pca.sha256 if t.patch_pca is not None else None)
+                    != (patch_pca.sha256 if patch_pca is not None else None)):
+        info(f"not reusing {p}: it has no patch features" + (" in the map's PCA space" if t.patches is not None else ""))
         return None
     info(f"reusing descriptors {p} (same log, window and descriptor)")
     return t

@@ -151,11 +151,18 @@ def localize(
                           "(use --coordinate frames or time)")
     still = map_still_distance(ref, map_descriptors, cfg.sequence)
     window = query_window(query_log, cfg.window)
-    qt = read_cached(query_descriptors, query_log, ref.meta, window, still) if query_descriptors else None
+    # the query's patch features, projected by the map's PCA, when the map re-ranks with them
+    patches = cfg.sequence.rerank and ref.patch_pca is not None
+    if cfg.sequence.rerank and ref.patch_pca is None:
+        info(f"{map_descriptors}: the map stores no patch features ({ref.meta.kind} descriptors, or a map written "
+             "before memlog stored them): matched without re-ranking")
+    qt = read_cached(query_descriptors, query_log, ref.meta, window, still, patches=patches,
+                     patch_pca=ref.patch_pca) if query_descriptors else None
     reused = qt is not None
     reports: list[ReadReport] = []
     if qt is None:
-        qt, report = describe_log(query_log, describer_for(ref), window, still_distance=still)
+        qt, report = describe_log(query_log, describer_for(ref), window, still_distance=still, patches=patches,
+                                  patch_pca=ref.patch_pca)
         reports.append(report)
         if query_descriptors is not None:
             write_descriptors(query_descriptors, qt)
@@ -188,7 +195,8 @@ def localize(
                        "matched_by": how, "fallback": res.fallback, "sequence_speed": res.speed,
                        "sequence_window": res.window},
         ref_columns={"ref_topic": np.array(ref.topic), "ref_log_time_ns": ref.log_time_ns},
-        rank_columns={"sequence_score": seq_scores},
+        rank_columns={"sequence_score": seq_scores,
+                      **({} if res.rerank is None else {"rerank_score": res.rerank})},
         metadata={"map": str(Path(map_descriptors).resolve()), "query_log": str(Path(query_log).resolve()),
                   "descriptor": ref.meta.to_dict(), "k": cfg.k, "window": qt.extra.get("window"),
                   "search": search, "sequence": sequence},
@@ -238,7 +246,7 @@ def _sequence_record(found: dict[str, Any], cfg: SequenceConfig) -> dict[str, An
     (coordinate, speeds searched, the reference's frame spacing) and the fallback, if any."""
     keys = ("coordinate", "coordinate_note", "length_used", "speeds", "speed_step", "n_speeds", "speed_prior", "unit",
             "runs", "max_gap_s", "sequence_queries", "single_queries", "fallback", "fallback_reasons", "stops",
-            "standing_rows")
+            "standing_rows", "rerank")
     out = {"asked": cfg.to_dict(), "length": cfg.length, "mode": "causal" if cfg.causal else "offline",
            "candidates": cfg.candidates, "path": cfg.path, **{k: found.get(k) for k in keys}}
     if not cfg.enabled:
