@@ -62,6 +62,15 @@ def shared(name: str) -> Path:
     return path
 
 
+def chromium() -> str:
+    """The headless Chromium that renders the HTML report; skips (fails when ``MEMLOG_REQUIRE_SHARED=1``) without it."""
+    path = shutil.which("chromium") or shutil.which("chromium-browser")
+    if path is None:
+        skip_or_fail("chromium is missing: the report's rendering tests need a headless Chromium "
+                     "(Debian: apt-get install chromium; .ci/run installs it)")
+    return path
+
+
 def load_fixture_script() -> ModuleType:
     spec = importlib.util.spec_from_file_location("make_fixtures", FIXTURES / "make_fixtures.py")
     assert spec and spec.loader
