@@ -341,7 +341,7 @@ def _add_candidates(g: argparse._ActionsContainer, evaluate: bool = False) -> No
                 % {"default_k": DEFAULT_CANDIDATES})
     else:
         text = ("segment selection: run ResMem on at most K frames per segment, the best by staticity and entropy "
-                "spread over the segment (approximate; default %(default_k)s, see the README's defaults table); "
+                "spread over the segment (approximate; default %(default_k)s, see docs/defaults.md); "
                 "'all': exactly the frames that can still win, which keeps the same frames as scoring every frame"
                 % {"default_k": DEFAULT_CANDIDATES})
     g.add_argument("--candidates", type=count_or_all, metavar="K|all", help=text)

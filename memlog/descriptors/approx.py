@@ -55,7 +55,7 @@ def default_nlist(n_refs: int) -> int:
 
 def default_nprobe(nlist: int) -> int:
     """Cells scanned per query: ``nlist / 64``, at least 16 (measured recall against exact search: see
-    ``benchmarks/search_bench.py`` and the README)."""
+    ``benchmarks/search_bench.py`` and ``docs/benchmarks.md``)."""
     return min(nlist, max(16, nlist // 64))
 
 

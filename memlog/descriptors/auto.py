@@ -3,8 +3,8 @@
 Rule: the learned descriptor :data:`AUTO_LEARNED` when the shorter side of the first frame that
 decodes is at least :data:`AUTO_MIN_SIDE` pixels, else the thumbnail. Why:
 
-* on ordinary frames (960x540, a real second traversal with a lateral shift; the issue's
-  measurement) DINOv2 GeM reached R@1 0.70 against the thumbnail's 0.38;
+* on ordinary frames (960x540, a real second traversal with a lateral shift) DINOv2 GeM
+  localized far better than the thumbnail;
 * on tiny frames (Nordland 64x32, summer -> winter, 800 places; ``benchmarks/descriptor_recall.py``)
   the DINOv2 kinds are several times worse than the thumbnail, the frames being enlarged 3.5 to
   7 times to the network's 224 x 224 input.

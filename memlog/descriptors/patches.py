@@ -2,7 +2,8 @@
 score of a (query frame, map frame) pair.
 
 The global descriptor finds the right place among the first few candidates; the patch tokens
-decide among them. Recipe (chosen by measurement on the Stromovka pair, README "Re-ranking"):
+decide among them. Recipe (chosen by measurement on the Stromovka pair: ``docs/defaults.md``,
+``benchmarks/rerank_table.py``):
 
 * **Tokens** of a middle block (:data:`PATCH_LAYER`; the final layer's tokens match worse across
   seasons) from the same network pass as the global descriptor, CLS dropped: a 16 x 16 grid.

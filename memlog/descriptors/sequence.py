@@ -23,11 +23,11 @@ is compared with the query frame(s) predicted nearest to it (all of them on a ti
 a full map at the right speed that is every window frame against its own place; on a half or
 quarter map (gaps: the map holds only the kept frames, with their frame indices in the reference
 drive) each kept frame meets the query frame aligned with it, never the frames that fall in a gap
-only because no kept frame is nearer (on Nordland a frame two places away is another view: taking
-every window frame, quarter-map R@1 was 0.20, with this pairing 0.39). Predictions beyond the
+only because no kept frame is nearer (on Nordland a frame two places away is another view).
+The measurements behind this and every default below: ``docs/defaults.md``. Predictions beyond the
 map's ends meet nothing. The path's score is ``sum(z) / sqrt(pairs)``: standard normal when
 nothing matches, whatever the number of pairs, so paths with fewer pairs do not win by noise
-(the plain mean lost 0.05 R@1 on half maps). Two path models (``path``):
+(the plain mean lost on half maps). Two path models (``path``):
 
 * ``constant`` (SeqSLAM): a straight line, coordinate ``x + v (c_t - c_i)`` with the relative
   speed ``v`` (map coordinate per query coordinate) searched over ``speeds`` in steps of
@@ -42,8 +42,7 @@ nothing matches, whatever the number of pairs, so paths with fewer pairs do not 
   grid units (``d``: the query's coordinate step, ``u``: the reference's frame spacing), so the
   speed may change inside the window (a stop half-way through it). Each window frame is scored
   against the map frame nearest its grid position. Measured on the Nordland variants it loses to
-  ``constant`` (its freedom fits wrong places too: AUC 0.42 against 0.65 on the base drive), so
-  ``constant`` is the default.
+  ``constant`` (its freedom fits wrong places too), so ``constant`` is the default.
 
 **Any map size.** Only hypotheses supported by the single-frame search are considered: the top
 ``candidates`` map frames of every query frame (exact search, or an approximate FAISS index)
@@ -54,8 +53,8 @@ votes for a centre beyond the map's ends are dropped. The :data:`EXACT_PLACES` b
 scored exactly with the chosen path model at its voted speed and :data:`RESCORE_SPEEDS` steps
 either side, with its centre refined in steps of half a reference frame within half the map's
 spacing (a sparse map's place, or a query frame of a map at a lower frame rate, may lie between
-map frames: against a map at half the frame rate R@1 went from 0.52 to 0.62), and reported as the
-map frame nearest its centre. More places competing gave more false maxima (R@1 0.72 with 3, 0.69 with 12);
+map frames), and reported as the map frame nearest its centre. More places competing gave more
+false maxima;
 ranks beyond come from the next voted places. The cost per query does not depend on the map's
 size beyond the candidate search.
 
@@ -73,8 +72,8 @@ drive runs along its *moving index* in the ``frames`` coordinate
 without it keep the frame index) and along its moving time in the ``time`` coordinate (the time
 spent standing left out); ``positions`` add nothing while standing anyway. A query frame that
 stood still since its run's previous frame is not matched on its own: it takes the result of its
-stop's first frame (``standing``; ``info["standing_rows"]``). The README's matcher tables
-(``benchmarks/matcher_defaults.py``) give what this and the other defaults were measured on.
+stop's first frame (``standing``; ``info["standing_rows"]``). ``docs/defaults.md``
+(``benchmarks/matcher_defaults.py``) gives what this and the other defaults were measured on.
 
 **Runs and the fallback.** Both drives are cut into runs (:func:`drive_runs`: recording gaps,
 frames out of order, cameras); a map's runs lie far apart in coordinate, so no path crosses from
@@ -172,9 +171,8 @@ class SequenceConfig:
     memory only; never the result). ``scale_length``: on a sparse map (the kept frames' median
     spacing ``s`` reference frames, a half map ``s = 2``) the window is ``length * s`` frames
     (at most :data:`MAX_LENGTH_SCALE` times), so a sequence meets as many map frames as on the
-    full map (Nordland, winter against summer, +-10 frames, full map R@1 0.723: the map of every
-    2nd frame 0.655 -> 0.739 with +-20, the other half 0.653 -> 0.669, every 4th frame 0.410 ->
-    0.430 with +-20; windows of 4x were worse on drives that change speed; ``info["length_used"]``).
+    full map (measured on Nordland's half and quarter maps; windows of 4x were worse on drives
+    that change speed; ``info["length_used"]``).
     ``stops``: in the ``frames`` coordinate, drives run along their moving index and a standing
     query frame takes its stop's match (the module doc's "Stops"). ``speed_prior``: a path's
     score loses this much per doubling (or halving) of its speed against 1, ``|log2 v|`` (0: every

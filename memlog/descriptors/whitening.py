@@ -24,12 +24,9 @@ Dimension rule (:func:`whitening_dim`): ``dim_out = min(max_dim, dim_in, n // 2)
 ``max_dim = 512`` by default. The covariance of ``n`` descriptors has at most ``n - 1`` non-zero
 directions and the smallest ones are noise that whitening amplifies: on the Nordland slice
 (``benchmarks/desc_table.py``; summer -> winter) R@1 rose with the dimension up to about
-``n / 2`` and fell near ``n`` (thumbnail, 800 frames: 0.209 raw, 0.172 at 64, 0.266 at 128,
-0.318 at 400 = n/2, 0.323 at 600, 0.282 at 799; 200 frames: 0.225 raw, 0.250 at 64, 0.265 at
-100 = n/2, 0.310 at 128, 0.205 at 199), and the DINOv2 kinds were best unreduced (384-d); so
-``n // 2`` stays on the safe side of the peak. ``max_dim`` bounds the stored transform
-(``dim_in x dim_out`` floats). The issue's 960x540 measurement used 64 dims on 200 frames, where
-the rule gives 100 (not measured on that data here).
+``n / 2`` and fell near ``n``, and the DINOv2 kinds were best unreduced (384-d); so ``n // 2``
+stays on the safe side of the peak (the figures: ``docs/defaults.md``). ``max_dim`` bounds the
+stored transform (``dim_in x dim_out`` floats).
 """
 
 from __future__ import annotations
