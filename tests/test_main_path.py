@@ -155,7 +155,8 @@ def test_localize_matches_every_camera_topic_of_the_query(tmp_path: Path) -> Non
     assert set(pq.read_table(tmp_path / "one.parquet").to_pydict()["query_topic"]) == {"/camera/image_raw"}
 
 
-@pytest.mark.parametrize("kind", ["thumbnail", "dinov2-cls", "dinov2-gem", "dinov2-gem-l7", "dinov2-gem-ms"])
+@pytest.mark.parametrize("kind", ["thumbnail", "dinov2-cls", "dinov2-gem", "dinov2-mean", "dinov2-gem-l7",
+                                  "dinov2-gem-ms"])
 def test_every_descriptor_kind_is_rebuilt_from_what_its_map_records(kind: str) -> None:
     """localize rebuilds the describer from the map's recorded kind and params (``describer_for``):
     every registered kind must take back the params it records and describe alike."""
@@ -166,8 +167,8 @@ def test_every_descriptor_kind_is_rebuilt_from_what_its_map_records(kind: str) -
     from memlog.descriptors.table import DescriptorTable
     from memlog.steps.localize import describer_for
 
-    assert kind in DESCRIBERS and set(DESCRIBERS) <= {"thumbnail", "dinov2-cls", "dinov2-gem", "dinov2-gem-l7",
-                                                      "dinov2-gem-ms"}  # a new kind is added to this test
+    assert kind in DESCRIBERS and set(DESCRIBERS) <= {"thumbnail", "dinov2-cls", "dinov2-gem", "dinov2-mean",
+                                                      "dinov2-gem-l7", "dinov2-gem-ms"}  # a new kind is added here
     d = make_describer(kind)
     meta = DescriptorMeta.from_dict(d.meta().to_dict())
     table = DescriptorTable(["/cam"], np.array([0]), np.array([0]), np.array([0]), np.zeros((1, d.dim), np.float32),

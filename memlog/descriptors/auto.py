@@ -3,8 +3,11 @@
 Rule: the learned descriptor :data:`AUTO_LEARNED` when the shorter side of the first frame that
 decodes is at least :data:`AUTO_MIN_SIDE` pixels, else the thumbnail. Why:
 
-* on ordinary frames (960x540, a real second traversal with a lateral shift) DINOv2 GeM
-  localized far better than the thumbnail;
+* on ordinary frames (960x540, a real second traversal with a lateral shift) DINOv2 localized
+  far better than the thumbnail; of its poolings, layers, scales and input fits
+  (``benchmarks/descriptor_choices.py``, Stromovka), GeM of the final tokens on the stretched
+  frame held up on memlog's full, half and quarter maps alike (the mean of the tokens, better on
+  the full map, lost on the half map: ``docs/defaults.md``);
 * on tiny frames (Nordland 64x32, summer -> winter, 800 places; ``benchmarks/descriptor_recall.py``)
   the DINOv2 kinds are several times worse than the thumbnail, the frames being enlarged 3.5 to
   7 times to the network's 224 x 224 input.

@@ -39,8 +39,16 @@ DESCRIBERS: dict[str, dict[str, Any]] = {
         "resize": "stretch",
         "batch_size": 16,
     },
+    # the mean of the final patch tokens: the best pooling on Stromovka's full map with sequences and
+    # the re-rank, worse on its half map (benchmarks/descriptor_choices.py, docs/defaults.md)
+    "dinov2-mean": {
+        "class": "dinov2",
+        "pooling": "mean",
+        "resize": "stretch",
+        "batch_size": 16,
+    },
     # GeM over the patch tokens of a middle block (the 8th of 12): the best of blocks 6/8/10 x
-    # cls/gem/mean on the Nordland slice (benchmarks/descriptor_table.py)
+    # cls/gem/mean on the Nordland slice (benchmarks/desc_table.py)
     "dinov2-gem-l7": {
         "class": "dinov2",
         "pooling": "gem",
