@@ -8,6 +8,10 @@ line every 30 s through the ``memlog.progress`` logger (INFO). Whether bars are 
 (:func:`set_quiet`) and where progress is counted instead (:func:`redirect`) are context
 variables, so threads that run steps side by side (``memlog batch --logs-at-once``) each have
 their own.
+
+The time left is estimated from the items after the first one: what comes before the first item
+(models loading on first use, a worker starting) is not item time, so it does not inflate the
+estimate (the elapsed time and the final rate still count it).
 """
 
 from __future__ import annotations
@@ -51,17 +55,42 @@ def warning(text: str) -> None:
     LOGGER.warning(text)
 
 
-def _status(desc: str, n: int, total: int | None, unit: str, elapsed: float, done: bool) -> str:
-    rate = n / elapsed if elapsed > 0 else 0.0
+def _status(desc: str, n: int, total: int | None, unit: str, elapsed: float, done: bool,
+            rate: float | None = None) -> str:
+    """A status line; ``rate``: items per second for the time left (default ``n / elapsed``)."""
+    avg = n / elapsed if elapsed > 0 else 0.0
     of = f"/{total}" if total is not None else ""
     pct = f" ({100 * n / total:.0f} %)" if total else ""
     if done:
-        return f"{desc}: {n}{of} {unit}s{pct} in {elapsed:.1f} s ({rate:.2f}/s)"
-    if total is not None and rate > 0:
-        left = f", about {max(0.0, (total - n) / rate):.0f} s left"
+        return f"{desc}: {n}{of} {unit}s{pct} in {elapsed:.1f} s ({avg:.2f}/s)"
+    r = avg if rate is None else rate
+    if total is not None and r > 0:
+        left = f", about {max(0.0, (total - n) / r):.0f} s left"
+    elif total is not None and n < total:
+        left = ", estimating the time left"
     else:
         left = ", total unknown" if total is None else ""
-    return f"{desc}: {n}{of} {unit}s{pct} ({rate:.2f}/s{left})"
+    return f"{desc}: {n}{of} {unit}s{pct} ({r:.2f}/s{left})"
+
+
+class _Rate:
+    """Items per second from the first item on: the wait for the first item (model loading) is
+    left out of the estimate of the time left."""
+
+    def __init__(self) -> None:
+        self.first: float | None = None
+        self.n_first = 0
+
+    def seen(self, n: int, now: float) -> None:
+        if self.first is None and n > 0:
+            self.first, self.n_first = now, n
+        elif self.first is not None and now - self.first < 0.01:
+            self.n_first = n  # came with the first (a worker's first chunk): not timed either
+
+    def rate(self, n: int, now: float) -> float:
+        if self.first is None or n <= self.n_first or now <= self.first:
+            return 0.0
+        return (n - self.n_first) / (now - self.first)
 
 
 def _log_lines(it: Iterable[T], total: int | None, desc: str, unit: str, every_s: float) -> Iterator[T]:
@@ -69,14 +98,32 @@ def _log_lines(it: Iterable[T], total: int | None, desc: str, unit: str, every_s
     ``every_s`` seconds, and one when the loop ends."""
     t0 = last = time.monotonic()
     n = 0
+    rate = _Rate()
     for x in it:
-        yield x
         n += 1
+        now = time.monotonic()
+        rate.seen(n, now)
+        yield x
         now = time.monotonic()
         if now - last >= every_s:
             last = now
-            _PROGRESS.info(_status(desc, n, total, unit, now - t0, False))
+            _PROGRESS.info(_status(desc, n, total, unit, now - t0, False, rate.rate(n, now)))
     _PROGRESS.info(_status(desc, n, total, unit, time.monotonic() - t0, True))
+
+
+def _tqdm_from_first(it: Iterable[T], bar: Any) -> Iterator[T]:
+    """Items of ``it`` counted on the tqdm ``bar``; its clock restarts at the first item, so the
+    rate and the time left it shows leave the wait for the first item out."""
+    first = True
+    try:
+        for x in it:
+            if first:
+                first = False
+                bar.reset(total=bar.total)  # the clock (and the rate's history) from here
+            bar.update(1)
+            yield x
+    finally:
+        bar.close()
 
 
 def progress(it: Iterable[T], *, total: int | None = None, desc: str = "", unit: str = "msg",
@@ -98,8 +145,8 @@ def progress(it: Iterable[T], *, total: int | None = None, desc: str = "", unit:
     from tqdm import tqdm
 
     # miniters=1: the count on screen follows every item (a fast copy showed "0msg" until it ended)
-    yield from tqdm(it, total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=False, miniters=1,
-                    mininterval=0.2, **kw)
+    yield from _tqdm_from_first(it, tqdm(total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=False,
+                                         miniters=1, mininterval=0.2, **kw))
 
 
 @contextlib.contextmanager
@@ -122,6 +169,7 @@ class Bar:
         self.n = 0
         self.note = ""
         self._t0 = self._last = time.monotonic()
+        self._rate = _Rate()
         self._bar: Any = None
         self._closed = False
         if not _QUIET.get() and sys.stderr.isatty():
@@ -145,17 +193,21 @@ class Bar:
             info(text)
 
     def update(self, n: int = 1) -> None:
+        first = self.n == 0 and n > 0
         self.n += n
+        now = time.monotonic()
+        self._rate.seen(self.n, now)
         if self._bar is not None:
+            if first:  # the bar's clock from the first item: its time left leaves the wait before out
+                self._bar.reset(total=self.total)
             self._bar.update(n)
             return
-        now = time.monotonic()
         if not _QUIET.get() and now - self._last >= self.every_s:
             self._last = now
             _PROGRESS.info(self._line(now, False))
 
     def _line(self, now: float, done: bool) -> str:
-        line = _status(self.desc, self.n, self.total, self.unit, now - self._t0, done)
+        line = _status(self.desc, self.n, self.total, self.unit, now - self._t0, done, self._rate.rate(self.n, now))
         return f"{line}; {self.note}" if self.note else line
 
     def close(self) -> None:

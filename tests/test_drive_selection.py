@@ -264,7 +264,8 @@ def test_distance_uniform_mask_picks_the_frame_nearest_each_even_mark() -> None:
 @pytest.fixture(scope="module")
 def nordland_eval(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]:
     """evaluate summer -> winter (first 200 places, stand-in ResMem) with sequences (the default)
-    and with single frames (``--sequence 0``)."""
+    and with single frames (``--sequence 0``), each with ``--compare-exact`` (the exact selection's
+    column beside the map's: opt-in, it scores every reference frame's memorability)."""
     from memlog.descriptors.sequence import SequenceConfig
     from memlog.selection.config import SelectionConfig
     from memlog.steps.evaluate import EvaluateConfig, evaluate
@@ -276,7 +277,7 @@ def nordland_eval(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]
         use_stand_in(mp)
         for name, seq in (("seq", SequenceConfig()), ("single", SequenceConfig(length=0))):
             cfg = EvaluateConfig(select=SelectionConfig(keep_fraction=0.5), max_frames=200, seeds=3, report=False,
-                                 sequence=seq)
+                                 sequence=seq, compare_exact=True)
             res = evaluate(shared("nordland_dev_summer.mcap"), shared("nordland_dev_winter.mcap"), d / name, cfg,
                            truth=shared("nordland_dev_truth.json"))
             out.append(json.loads((d / name / "results.json").read_text()))

@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from memlog.io.image import decode_bgr, decode_gray
+from memlog.io.image import decode_bgr, decode_bgr_reduced, decode_gray
 from memlog.io.types import ImagePayload
 
 __all__ = ["Frame"]
@@ -33,6 +33,12 @@ class Frame:
     def decode_bgr(self) -> npt.NDArray[np.uint8]:
         """Decode the payload to an HxWx3 uint8 BGR array (see :mod:`memlog.io.image`)."""
         return decode_bgr(self.payload)
+
+    def decode_bgr_reduced(self, min_width: int, min_height: int) -> npt.NDArray[np.uint8]:
+        """Decode to BGR at the smallest JPEG DCT scale (full, 1/2, 1/4, 1/8) that is at least
+        ``min_width`` x ``min_height`` (:func:`memlog.io.image.decode_bgr_reduced`: for consumers
+        that shrink frames themselves, never for the scores)."""
+        return decode_bgr_reduced(self.payload, min_width, min_height)
 
     def decode_gray(self) -> npt.NDArray[np.uint8]:
         """Decode the payload to an HxW uint8 grey array (see :mod:`memlog.io.image`)."""

@@ -27,6 +27,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import hashlib
 from collections.abc import Hashable
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from typing import Any, TypeVar
 
 import cv2
@@ -34,10 +35,11 @@ import numpy as np
 import numpy.typing as npt
 
 from memlog.errors import ScoringError
-from memlog.models.resmem import FRAME
+from memlog.models.resmem import FRAME, GRID
 from memlog.scoring.config import ScoreConfig
 
-__all__ = ["Scorer", "FrameScore", "SharedScore", "CheapStage", "resize_frame", "STAGES", "pixels_digest", "view_vector", "view_steps", "blank_views"]
+__all__ = ["Scorer", "FrameScore", "SharedScore", "CheapStage", "EntropyBound", "resize_frame", "STAGES", "pixels_digest",
+           "view_vector", "view_steps", "blank_views", "crops_needed"]
 
 STAGES = ("staticity", "entropy", "memorability")
 T = TypeVar("T")
@@ -50,6 +52,41 @@ def resize_frame(bgr: npt.NDArray[Any], size: int = FRAME) -> npt.NDArray[np.uin
     if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
         raise ScoringError(f"expected an HxWx3 uint8 BGR frame, got shape {bgr.shape} dtype {bgr.dtype}")
     return np.ascontiguousarray(cv2.resize(bgr, (size, size), interpolation=cv2.INTER_LINEAR))
+
+
+def crops_needed(static_map: npt.NDArray[Any]) -> int:
+    """The crops of non-zero weight (:func:`memlog.models.resmem.crop_weights`): what scoring MS
+    fully runs. A map with no dynamic pixel gives every crop a positive weight (the weights are
+    sums of non-negative terms), so that case needs no 1135 x 1135 product."""
+    if bool(np.all(static_map)):
+        return GRID * GRID
+    from memlog.models.resmem import crop_weights
+
+    return int(np.count_nonzero(crop_weights(static_map) > 0))
+
+
+@lru_cache(maxsize=1)
+def _all_static() -> npt.NDArray[np.float64]:
+    """The static map of a frame without dynamic objects (every pixel 1), read-only; float64, as
+    :func:`~memlog.scoring.entropy.entropy_score` multiplies with it (the same numbers as a uint8
+    map of ones, without converting one per frame)."""
+    s = np.ones((FRAME, FRAME), np.float64)
+    s.setflags(write=False)
+    return s
+
+
+@dataclass
+class EntropyBound:
+    """The entropy half alone (no detector): ``es_static`` is the frame's ES were every pixel
+    static, computed as the scorer computes ES for such a frame (so it *is* its ES when the
+    detector finds no dynamic object). Masking only removes entropy (S <= 1) and SS <= 1, so it
+    bounds the frame's ES and, with MS <= SS <= 1, its geometric score; staged selection runs the
+    detector only where that bound can still win (:func:`memlog.selection.staged.detect_in_segment`)."""
+
+    es_static: float
+    height: int
+    width: int
+    timing_ms: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -248,9 +285,41 @@ class Scorer:
         return {"models": models, "devices": devices}
 
     # -- stages ---------------------------------------------------------------------
-    def cheap(self, bgr: npt.NDArray[Any], keep_maps: bool | None = None) -> CheapStage:
-        """Resize, staticity (detector once), entropy: everything but the CNN."""
-        from memlog.scoring.entropy import entropy_map, entropy_score
+    def _entropy_map(self, gray: npt.NDArray[np.uint8]) -> npt.NDArray[np.float64]:
+        """The entropy map E of the grey 1135 frame (scikit-image's in paper mode, memlog's exact
+        sliding histograms otherwise: the same values)."""
+        from memlog.scoring.entropy import entropy_map
+
+        c = self.config
+        if c.mode == "paper":
+            from skimage.filters.rank import entropy as sk_entropy
+            from skimage.morphology import disk
+
+            return np.asarray(sk_entropy(gray, disk(c.entropy_radius)), np.float64)  # type: ignore[no-untyped-call]
+        return entropy_map(gray, c.entropy_radius)
+
+    def entropy_bound(self, bgr: npt.NDArray[Any]) -> EntropyBound:
+        """Resize and entropy without the detector: the frame's ES were every pixel static
+        (:class:`EntropyBound`; the SPEC's E of the grey 1135 x 1135 frame, masked by S = 1)."""
+        from memlog.scoring.entropy import entropy_score
+
+        t0 = time.perf_counter()
+        h, w = bgr.shape[:2]
+        f = resize_frame(bgr)
+        t1 = time.perf_counter()
+        gray: npt.NDArray[np.uint8] = np.asarray(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY), np.uint8)
+        es = entropy_score(self._entropy_map(gray), _all_static())
+        t2 = time.perf_counter()
+        return EntropyBound(float(es), h, w, {"resize": (t1 - t0) * 1e3, "entropy": (t2 - t1) * 1e3})
+
+    def cheap(self, bgr: npt.NDArray[Any], keep_maps: bool | None = None, *,
+              es_static: float | None = None) -> CheapStage:
+        """Resize, staticity (detector once), entropy: everything but the CNN.
+
+        ``es_static``: the frame's :attr:`EntropyBound.es_static`, computed before; when the
+        detector finds no dynamic pixel it is the frame's ES (the same number, not recomputed),
+        else the entropy map is computed again and masked."""
+        from memlog.scoring.entropy import entropy_score
 
         c = self.config
         keep = c.maps if keep_maps is None else keep_maps
@@ -268,21 +337,18 @@ class Scorer:
             out.rejected_by = "staticity"
             if not c.all_scores and c.mode != "paper":
                 return out
-        gray: npt.NDArray[np.uint8] = np.asarray(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY), np.uint8)
-        if c.mode == "paper":
-            from skimage.filters.rank import entropy as sk_entropy
-            from skimage.morphology import disk
-
-            emap = np.asarray(sk_entropy(gray, disk(c.entropy_radius)), np.float64)  # type: ignore[no-untyped-call]
+        if es_static is not None and not keep and bool(np.all(s_map)):
+            es = es_static  # entropy_score(E, S) with S all ones: computed already
         else:
-            emap = entropy_map(gray, c.entropy_radius)
-        es = entropy_score(emap, s_map)
+            gray: npt.NDArray[np.uint8] = np.asarray(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY), np.uint8)
+            emap = self._entropy_map(gray)
+            es = entropy_score(emap, s_map)
+            if keep:
+                out.entropy_map = emap
         if c.normalize == "static":
             es = es / ss if ss > 0 else 0.0
         out.es = float(es)
         timing["entropy"] = (time.perf_counter() - t2) * 1e3
-        if keep:
-            out.entropy_map = emap
         if out.rejected_by is None and out.es < c.et:
             out.rejected_by = "entropy"
         return out
@@ -293,9 +359,7 @@ class Scorer:
         timing = dict(cheap.timing_ms)
         res = FrameScore(ms=None, ss=cheap.ss, es=cheap.es, selected=False, rejected_by=cheap.rejected_by,
                          detections=cheap.detections, timing_ms=timing, width=cheap.width, height=cheap.height)
-        from memlog.models.resmem import crop_weights
-
-        res.crops_needed = int(np.count_nonzero(crop_weights(cheap.static_map) > 0))
+        res.crops_needed = crops_needed(cheap.static_map)
         need_m = cheap.rejected_by is None or c.all_scores or c.mode == "paper"
         if need_m:
             t0 = time.perf_counter()

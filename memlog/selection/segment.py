@@ -53,7 +53,10 @@ the later rows' coordinate) is the gap rule's.
 
 Each segment keeps its best frame by a combined score among the frames that pass the
 minimum thresholds ``min_ms``/``min_ss``/``min_es`` (NaN fails); a segment none of whose
-frames passes is dropped and reported as a :class:`~memlog.selection.table.Gap`.
+frames passes is dropped and reported as a :class:`~memlog.selection.table.Gap`. A frame whose SS
+and ES are both unknown (the staged map ran no detector on it because it could not be its
+segment's candidate, :func:`memlog.selection.staged.detect_in_segment`) is dropped for its
+segment ("segment") when the segment keeps a frame.
 
 Candidates (``shortlist=K``, ``memlog map --candidates K``, default 1): before MS is known each of
 K parts of a segment gives one candidate, by its upper bound; with ``centre_tolerance`` (default
@@ -690,8 +693,14 @@ def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> S
                 )
             )
     failed = codes_to_reasons(code)
+    # a frame whose SS and ES were not computed (the staged map ran no detector on it: it could not
+    # be its segment's candidate, memlog.selection.staged.detect_in_segment) is dropped for its segment
+    unknown = np.isnan(table.ss) & np.isnan(table.es)
+    seg_kept = np.zeros(int(seg.max()) + 1 if n else 0, dtype=bool)
+    seg_kept[seg[keep]] = True
     reasons: list[str | None] = [
-        None if k else ("segment" if r is None else r) for k, r in zip(keep.tolist(), failed)
+        None if k else ("segment" if r is None or (u and seg_kept[s]) else r)
+        for k, r, u, s in zip(keep.tolist(), failed, unknown.tolist(), seg.tolist())
     ]
     info.update({"combine": cfg.combine, "weights": list(cfg.weights), "n_gaps": len(gaps)})
     if cfg.distinct_weight > 0:

@@ -15,6 +15,17 @@ both on real logs.
 ``shortlist=K`` (approximate, ``--candidates K``): only K candidates per segment are scored,
 the best by their upper bound, spread over the segment (the best of each of K equal parts; with
 a centre tolerance the one nearest the part's middle among those within it of the best).
+
+Staticity is staged the same way, one step earlier (:func:`detect_in_segment`): before the
+detector runs, a frame's ES is bounded by ``es_static``, its ES were every pixel static (S <= 1
+only removes entropy), and SS <= 1, MS <= SS, so its score, and the shortlist's upper bound, are
+at most ``geometric_score(1, 1, es_static)``. The detector runs on a segment's frames in order of
+that bound until the best upper bound of the segment is known and, with the centre rule, until
+the frame nearest the segment's middle within the tolerance of it is known; the frames it never
+reached cannot be their segment's candidate, whatever their SS. Their SS and ES stay unknown
+(NaN in the table), and selection from such a table keeps the frames selection from every score
+keeps (:func:`~memlog.selection.segment.select_segments` drops a frame with unknown scores, and
+calls it dropped for its segment).
 """
 
 from __future__ import annotations
@@ -22,14 +33,15 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-from memlog.selection.segment import MS_DIGITS, geometric_score, shortlist_rows
+from memlog.selection.segment import MS_DIGITS, geometric_score, shortlist_rows, upper_bounds
 
-__all__ = ["MSResult", "MSState", "choose_in_segment", "shortlist_rows", "ms_to_beat"]
+__all__ = ["MSResult", "MSState", "choose_in_segment", "shortlist_rows", "ms_to_beat", "StaticityMode",
+           "staticity_mode", "detect_in_segment"]
 
 #: Slack on the MS a candidate needs: decisions are verified on the score itself anyway.
 _SLACK = 1e-9
@@ -180,3 +192,123 @@ def choose_in_segment(
         if lead is None or _beats(v, r, lead_value, lead):
             lead, lead_value = r, v
     return lead, states
+
+
+# -- staticity, staged -------------------------------------------------------------------------------
+#: How :func:`detect_in_segment` stages the detector: ``"best"`` (MS does not count: the segment keeps
+#: its best frame by SS and ES), ``"shortlist"`` (``--candidates 1``: the one candidate of the
+#: shortlist rule), ``"every"`` (the detector on every frame: more candidates, or ES not bounded).
+StaticityMode = Literal["best", "shortlist", "every"]
+
+#: Relative slack on the bound and on the decisions: the bound and the upper bounds are computed by
+#: the same float functions, this only keeps a last-ulp difference from ever saving a detector run.
+_STAGE_SLACK = 1e-9
+
+
+def staticity_mode(weights: tuple[float, float, float], min_ms: float, shortlist: int | None,
+                   es_bounded: bool) -> StaticityMode:
+    """Which frames of a segment need the detector (see :data:`StaticityMode`). ``es_bounded``: ES
+    is divided by all pixels (``normalize="all"``), so masking can only lower it; with ES divided
+    by the static pixels it can rise, and every frame is detected."""
+    if not es_bounded:
+        return "every"
+    if weights[0] <= 0 and min_ms <= 0:
+        return "best"
+    return "shortlist" if shortlist == 1 else "every"
+
+
+def detect_in_segment(
+    n: int,
+    es_static: Sequence[float],
+    detect: Callable[[int], tuple[float, float]],
+    *,
+    mode: StaticityMode,
+    weights: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    min_ss: float = 0.0,
+    min_es: float = 0.0,
+    coord: Sequence[float] | None = None,
+    centre_tolerance: float = 0.0,
+) -> dict[int, tuple[float, float]]:
+    """Run the detector (``detect(row) -> (ss, es)``, both as the table holds them: 6 decimals) on
+    the rows 0..n-1 of one segment that can still be its candidate; returns the rows it ran on.
+
+    ``es_static[row]``: the row's ES were every pixel static (rounded as ES is), which bounds its
+    ES. ``mode`` (:func:`staticity_mode`): ``"best"``, the segment keeps the best frame by the
+    geometric score of SS and ES (MS has weight 0): rows in order of their bound until the best
+    passing row's score is above every remaining bound; ``"shortlist"``, the candidate of
+    :func:`~memlog.selection.segment.shortlist_rows` with ``k=1``: the same for the best upper
+    bound (:func:`~memlog.selection.segment.upper_bounds`), then, with ``coord`` and a
+    ``centre_tolerance``, the rows within the tolerance by their bound in order of their distance
+    to the segment's middle until one is within it by its upper bound (rows as near as each other,
+    the frames of a stop, in order of their bound until the best of them is known); ``"every"``:
+    every row. A row passes with ``ss >= min_ss`` and ``es >= min_es``; a
+    segment without a passing row has every row detected (its gap's reasons are exact).
+    """
+    got: dict[int, tuple[float, float]] = {}
+
+    def run(r: int) -> tuple[float, float]:
+        if r not in got:
+            got[r] = detect(r)
+        return got[r]
+
+    def passes(r: int) -> bool:
+        ss, es = got[r]
+        return bool(ss >= min_ss and es >= min_es)
+
+    if mode == "every" or n <= 1:
+        for r in range(n):
+            run(r)
+        return got
+    es_b = np.asarray(es_static, dtype=np.float64)
+    ms_top = 0.0 if mode == "best" else 1.0  # (with MS weight 0 the MS column is not used)
+    bound = geometric_score(np.full(n, ms_top), np.ones(n), es_b, weights) * (1.0 + _STAGE_SLACK)
+
+    def value(r: int) -> float:
+        ss, es = got[r]
+        if mode == "best":
+            return float(geometric_score(np.array([0.0]), np.array([ss]), np.array([es]), weights)[0])
+        return float(upper_bounds(np.array([ss]), np.array([es]), weights)[0])
+
+    lead: int | None = None
+    lead_value = -math.inf
+    for r in sorted(range(n), key=lambda r: (-bound[r], r)):
+        if lead is not None and bound[r] < lead_value * (1.0 - _STAGE_SLACK):
+            break  # in order of the bound: no later row can reach the leader, or tie with it
+        run(r)
+        if not passes(r):
+            continue
+        v = value(r)
+        if lead is None or v > lead_value or (v == lead_value and r < lead):
+            lead, lead_value = r, v
+    if lead is None or mode == "best" or coord is None or centre_tolerance <= 0:
+        return got
+    # the centre rule: the row nearest the middle among the passing rows within the tolerance
+    floor = (1.0 - centre_tolerance) * lead_value
+    base = float(np.floor(coord[0]))
+    if any(float(np.floor(coord[r])) != base for r in range(n)):  # (one segment lies in one bin)
+        for r in range(n):
+            run(r)
+        return got
+    mid = base + 0.5
+    dist = [abs(float(coord[r]) - mid) for r in range(n)]  # (as shortlist_rows computes it)
+    near = sorted((r for r in range(n) if bound[r] >= floor * (1.0 - _STAGE_SLACK)), key=lambda r: (dist[r], r))
+    i = 0
+    while i < len(near):
+        group = [r for r in near[i:] if dist[r] == dist[near[i]]]  # as near as each other (a stop: many)
+        i += len(group)
+        # within the group the higher upper bound wins (ties: the earlier row): in order of the bound
+        # until no other row can reach the best one within the tolerance
+        best: int | None = None
+        best_value = -math.inf
+        for r in sorted(group, key=lambda r: (-bound[r], r)):
+            if best is not None and bound[r] < best_value * (1.0 - _STAGE_SLACK):
+                break
+            run(r)
+            if not passes(r):
+                continue
+            v = value(r)
+            if v >= floor * (1.0 - _STAGE_SLACK) and (best is None or v > best_value or (v == best_value and r < best)):
+                best, best_value = r, v
+        if best is not None and best_value >= floor * (1.0 + _STAGE_SLACK):
+            break  # a row surely within the tolerance: no farther row is the candidate
+    return got

@@ -35,6 +35,7 @@ from memlog._version import __version__
 from memlog.configfile import check_ints
 from memlog.descriptors.auto import AUTO, resolve_descriptor
 from memlog.descriptors.base import Describer
+from memlog.descriptors.patches import PatchPCA
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import DESCRIBERS, make_describer
 from memlog.descriptors.search import time_per_query
@@ -63,7 +64,7 @@ from memlog.scoring.config import ScoreConfig
 from memlog.selection import ScoreTable, distance_uniform_mask, random_masks, uniform_mask
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.selection.paper import first_failing
-from memlog.steps.map import MapConfig, make_map, score_table
+from memlog.steps.map import MapConfig, make_map, score_table, staged_scores, staged_stageable
 from memlog.steps.score import score
 
 __all__ = ["evaluate", "EvaluateConfig", "EvaluateResult", "SWEEP_STEPS"]
@@ -185,7 +186,8 @@ class _Matching:
         if "sequence" not in self.info and sm.sequence.any():
             self.info.update({"sequence": self.seq.to_dict(),
                               **{k: sm.info.get(k) for k in ("coordinate", "coordinate_note", "max_gap_s", "stops",
-                                                             "standing_rows", "length_used", "map_runs")}})
+                                                             "standing_rows", "length_used", "map_runs",
+                                                             "rerank")}})
         if "fallback" not in self.info and sm.info.get("fallback"):
             self.info["fallback"] = sm.info["fallback"]
             self.info["fallback_reasons"] = sm.info.get("fallback_reasons")
@@ -206,7 +208,7 @@ class _Matching:
         else:
             sm = match_tables(self.q_t, self.ref_t, self._config(seq), k=k, ref_mask=mask)
             idx = sm.indices
-        if seq:
+        if seq and (map_table is not None or mask is None):  # what the summary says: the full and memorable maps
             self._record(sm)
         sc = sm.scores.copy()
         sc[:, 0] = sm.confidence
@@ -293,7 +295,7 @@ def _described(log: str, path: Path, describer: Describer, window: FrameWindow, 
                still_distance: float, scores: dict[str, dict[int, dict[str, Any]]] | None = None) -> DescriptorTable:
     """Descriptors of ``log``, stops found with ``still_distance`` (cached at ``path`` when made
     from the same log, window, describer and stop rule)."""
-    cached = read_cached(path, log, describer.meta(), window, still_distance)
+    cached = read_cached(path, log, describer.meta(), window, still_distance, patches=describer.gives_patches)
     if cached is not None:
         return cached
     t, report = describe_log(log, describer, window, scores=scores, still_distance=still_distance)
@@ -374,12 +376,23 @@ def evaluate(
     describers = {kind: make_describer(kind) for kind in kinds}
     out.mkdir(exist_ok=True)  # (an earlier run's results.json stays until this run's replaces it)
 
-    # 1. score the reference drive (every score: sweeps and calibration need them)
+    # 1. score the reference drive. By default as `memlog map` scores it (staged: the detector and
+    # ResMem only where they can change the map; the scores not computed are null in the records), so
+    # the memorable map costs what the map step costs. With --compare-exact (the exact selection needs
+    # every MS), or settings the staged selection does not serve, every score of every frame
+    # (OUT/reference.scored.mcap, reused when it matches).
     reports: list[ReadReport] = []
-    scored = out / "reference.scored.mcap"
-    if not _reuse_scores(scored, reference, score_cfg, ref_topic, ref_window):
-        reports.append(score(reference, scored, score_cfg, ref_window).report)
-    recs = read_scores(scored)[ref_topic]
+    staged_cfg = MapConfig(score=cfg.score, select=cfg.select, topics=(ref_topic,), descriptor=None,
+                           candidates=cfg.candidates)
+    if not cfg.compare_exact and staged_stageable(staged_cfg):
+        staged_recs, staged_report = staged_scores(reference, staged_cfg, ref_window)
+        reports.append(staged_report)
+        recs = staged_recs.get(ref_topic, [])
+    else:
+        scored = out / "reference.scored.mcap"
+        if not _reuse_scores(scored, reference, score_cfg, ref_topic, ref_window):
+            reports.append(score(reference, scored, score_cfg, ref_window).report)
+        recs = read_scores(scored)[ref_topic]
     score_by_frame = {ref_topic: {r["frame_index"]: r for r in recs}}
 
     results: dict[str, Any] = {"memlog_version": __version__}
@@ -422,17 +435,20 @@ def evaluate(
                                      whiten=cfg.whiten, candidates=cfg.candidates),
                            scores=in_window,
                            known_descriptors={(ref_topic, int(i)): ref_t.descriptors[r]
-                                              for r, i in enumerate(ref_t.frame_index)})
+                                              for r, i in enumerate(ref_t.frame_index)},
+                           known_patches=None if ref_t.patches is None else {
+                               (ref_topic, int(i)): ref_t.patches[r] for r, i in enumerate(ref_t.frame_index)})
         sel = map_res.selections[ref_topic]
         mask = np.isin(ref_t.frame_index, sel.kept_indices)
         table = score_table(in_window[ref_topic], ref_topic)
         map_table = read_descriptors(map_res.descriptors) if map_res.descriptors is not None else None
         whitening = map_table.whitening if (cfg.whiten and map_table is not None) else None
+        patch_pca = map_table.patch_pca if map_table is not None else None
 
         # 5. variants under both protocols, matched as the localize step does (and frame by frame):
         # the memorable map as its Parquet was written, the others as masks of the reference drive
         # in the same descriptor space (the query whitened with the map's transform, as localize does)
-        matching = _Matching(_whitened(q_t, whitening), _whitened(ref_t, whitening), cfg)
+        matching = _Matching(_whitened(q_t, whitening, patch_pca), _whitened(ref_t, whitening, patch_pca), cfg)
         res: dict[str, Any] = {"descriptor": choice.to_dict(), "describer": describer.meta().to_dict(),
                                "whitening": map_res.whitening, "matching": matching.info}
         per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
@@ -453,7 +469,7 @@ def evaluate(
             res[name] = r
             per_variant[name] = (mo, po)
         if whitening is not None:
-            raw = _Matching(q_t, ref_t, cfg)
+            raw = _Matching(q_t.projected(patch_pca), ref_t.projected(patch_pca), cfg)
             res["full_unwhitened"] = raw.evaluate(truth_rows, variants["full"])[0]
         res["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
                                  "select": cfg.select.mode, "candidates": cfg.candidates,
@@ -504,7 +520,8 @@ def evaluate(
     if cfg.report:
         from memlog.outputs.report import write_report
 
-        write_report(out / "report.html", results, table, sel, per_variant, ref_t, reference, ref_topic)
+        write_report(out / "report.html", results, table, sel, per_variant, ref_t, reference, ref_topic,
+                     query=query, query_topic=q_topic, query_table=matching.q_t, truth=truth_rows)
     else:
         (out / "report.html").unlink(missing_ok=True)  # never leave an older report beside new results
     write_results(out / "results.json", results)  # last: results.json is there only for a finished run
@@ -513,9 +530,11 @@ def evaluate(
     return EvaluateResult(results, reports)
 
 
-def _whitened(table: DescriptorTable, whitening: Whitening | None) -> DescriptorTable:
-    """``table`` with its descriptors whitened by ``whitening`` (the map's: the space the map's
-    Parquet is in, as ``describer_for`` puts a query there); unchanged without one."""
+def _whitened(table: DescriptorTable, whitening: Whitening | None, patch_pca: PatchPCA | None) -> DescriptorTable:
+    """``table`` with its descriptors whitened by ``whitening`` and its patches projected by
+    ``patch_pca`` (the map's: the space the map's Parquet is in, as ``localize`` puts a query
+    there); descriptors unchanged without a whitening."""
+    table = table.projected(patch_pca)
     if whitening is None:
         return table
     meta = replace(table.meta, dim=whitening.dim_out, whitening=whitening.sha256)

@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -56,12 +56,14 @@ from memlog.scoring.scorer import view_vector
 from memlog.selection import ScoreTable, Selection
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.selection.segment import SegmentConfig, cut_segments
-from memlog.selection.staged import MSState
-from memlog.steps.map_scoring import CheapFrame, SegmentJob, cheap_frames, choose_chunk, staged_record
+from memlog.selection.staged import MSState, StaticityMode, staticity_mode
+from memlog.steps.map_scoring import (CheapFrame, Detected, DetectJob, DetectRule, SegmentJob, cheap_frames,
+                                      choose_chunk, detect_chunk, detect_segments, staged_record)
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
 from memlog.steps.score import scored_frames
 
-__all__ = ["make_map", "MapConfig", "MapResult", "score_table", "EmptyMapError", "collect_scores"]
+__all__ = ["make_map", "MapConfig", "MapResult", "score_table", "EmptyMapError", "collect_scores", "staged_scores",
+           "staged_stageable"]
 
 Records = dict[str, list[dict[str, Any]]]
 
@@ -364,22 +366,45 @@ def _full(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: P
     return recs_by_topic, looks, crops
 
 
+def _resmem_may_run(cfg: MapConfig) -> bool:
+    """Whether the staged selection can run ResMem at all (:func:`~memlog.selection.staged.choose_in_segment`):
+    not when MS does not count, nor with one candidate per segment that is kept without it."""
+    sel = cfg.select
+    if sel.weights[0] <= 0 and sel.min_ms <= 0:
+        return False
+    return _shortlist(cfg) != 1 or cfg.score_kept or sel.min_ms > 0
+
+
+def _scores_of(frames: list[CheapFrame], name: str) -> np.ndarray:
+    """SS or ES of the frames as score records store them (6 decimals); NaN where not computed."""
+    return np.array([np.nan if getattr(cf, name) is None else round(float(getattr(cf, name)), 6) for cf in frames])
+
+
 def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: PositionTrack | None,
-            ex: Executor, motion: Sequence[MotionTrack] = ()) -> tuple[Records, Looks | None, Crops]:
-    """Staged segment selection (:mod:`memlog.steps.map_scoring`): the cheap criteria of every
-    frame, segments, then ResMem only where it can change which frame a segment keeps."""
+            ex: Executor, motion: Sequence[MotionTrack] = (), *, window: FrameWindow | None = None,
+            stage_staticity: bool = True) -> tuple[Records, Looks | None, Crops]:
+    """Staged segment selection (:mod:`memlog.steps.map_scoring`): the entropy and view of every
+    frame, segments, the detector only where it can change which frame is a segment's candidate
+    (``stage_staticity=False``: on every frame, the unstaged path), then ResMem only where it can
+    change which frame a segment keeps."""
     sel_cfg = cfg.select
-    score_cfg = cfg.score.replace(all_scores=True)  # the cheap pass computes SS and ES of every frame
-    window = FrameWindow(tuple(cams), stride=cfg.stride)
+    score_cfg = cfg.score.replace(all_scores=True)  # every score of the frames that are scored
+    window = window or FrameWindow(tuple(cams), stride=cfg.stride)
+    shortlist = _shortlist(cfg)
+    mode: StaticityMode = "every"
+    if stage_staticity:
+        mode = staticity_mode(tuple(sel_cfg.weights), sel_cfg.min_ms, shortlist,  # type: ignore[arg-type]
+                              es_bounded=cfg.score.normalize == "all")
+    detect_first = mode == "every"  # the detector on every frame in pass 1
+    resmem = _resmem_may_run(cfg)
     cheap: dict[str, list[CheapFrame]] = {t: [] for t in cams}
     total = reader.count_frames(window)
     for cf in progress(cheap_frames(log, reader, score_cfg, window, ex, thumbs=sel_cfg.needs_descriptors,
-                                    views=_needs_view(cfg)),
-                       total=total, desc="cheap scores", unit="frame"):
+                                    views=_needs_view(cfg), detect=detect_first, crops=resmem),
+                       total=total, desc="cheap scores" if detect_first else "entropy", unit="frame"):
         cheap[cf.frame.topic].append(cf)
     seg_cfg = SegmentConfig(**sel_cfg.segment_settings())
-    shortlist = _shortlist(cfg)
-    jobs: list[tuple[str, list[int], SegmentJob]] = []
+    cut: dict[str, tuple[list[CheapFrame], ScoreTable, np.ndarray, np.ndarray | None]] = {}
     for t in cams:
         good = [cf for cf in cheap[t] if cf.error is None]
         if not good:
@@ -387,14 +412,23 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
         t_ns = np.array([cf.frame.log_time_ns for cf in good], dtype=np.int64)
         table = ScoreTable(
             index=np.array([cf.frame.index for cf in good], dtype=np.int64), t_ns=t_ns,
-            ms=np.zeros(len(good)), ss=np.array([round(float(cf.ss or 0.0), 6) for cf in good]),
-            es=np.array([round(float(cf.es or 0.0), 6) for cf in good]),
+            ms=np.zeros(len(good)), ss=_scores_of(good, "ss"), es=_scores_of(good, "es"),
             positions=_positions(track, good),
             descriptors=np.stack([np.asarray(cf.thumb) for cf in good]) if sel_cfg.needs_descriptors else None,
             view=np.stack([np.asarray(cf.view) for cf in good]) if _needs_view(cfg) else None,
             topic=t, motion=frame_motion(motion, t_ns))
-        seg, coord, _ = cut_segments(table, seg_cfg)
-        passing = (table.ss >= sel_cfg.min_ss) & (table.es >= sel_cfg.min_es)
+        seg, coord, _ = cut_segments(table, seg_cfg)  # (segments do not depend on the scores)
+        cut[t] = (good, table, seg, coord)
+    if not detect_first:
+        rule = DetectRule(mode, (float(sel_cfg.weights[0]), float(sel_cfg.weights[1]), float(sel_cfg.weights[2])),
+                          sel_cfg.min_ss, sel_cfg.min_es, sel_cfg.centre_tolerance)
+        _detect_staged(log, score_cfg, window, ex, cut, rule, resmem)
+        for good, table, _seg, _coord in cut.values():
+            table.ss, table.es = _scores_of(good, "ss"), _scores_of(good, "es")
+    jobs: list[tuple[str, list[int], SegmentJob]] = []
+    for t, (good, table, seg, coord) in cut.items():
+        with np.errstate(invalid="ignore"):
+            passing = (table.ss >= sel_cfg.min_ss) & (table.es >= sel_cfg.min_es)  # (NaN: not detected, fails)
         for sid in np.unique(seg):
             rows = [int(r) for r in np.flatnonzero((seg == sid) & passing)]
             if not rows:
@@ -411,25 +445,101 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
     args = ((log, score_cfg if isinstance(ex, InProcess) else wcfg, window, [j for _, _, j in b], sel_cfg.weights,
              sel_cfg.min_ms, shortlist, cfg.score_kept or shortlist is None, sel_cfg.centre_tolerance)
             for b in batches)
-    results = progress(ex.map_ordered(choose_chunk, args), total=len(batches), desc="memorability", unit="job")
+    results = ex.map_ordered(choose_chunk, args)
+    if resmem:  # (otherwise every segment's choice is made without ResMem: nothing to show)
+        results = progress(results, total=len(batches), desc="memorability", unit="job")
     for b, res in zip(batches, results):
         for (t, _rows, job), r in zip(b, res):
             for idx, st in zip(job.indices, r.states):
                 states[(t, idx)] = st
     recs_by_topic: Records = {}
-    run = full = 0
+    run = 0
+    full: int | None = 0
     for t in cams:
         recs = []
         for cf in cheap[t]:
             state = states.get((t, cf.frame.index))
             recs.append(staged_record(cf, state, cfg.score))
             run += state.crops_run if state is not None else 0
-            full += cf.crops_needed
+            if cf.error is None:
+                full = None if full is None or cf.crops_needed is None else full + cf.crops_needed
         recs_by_topic[t] = recs
     looks: Looks | None = None
     if _needs_looks(cfg):
         looks = {t: {cf.frame.index: (cf.thumb, cf.view) for cf in cheap[t] if cf.error is None} for t in cams}
     return recs_by_topic, looks, (run, full)
+
+
+def _detect_staged(log: str, score_cfg: ScoreConfig, window: FrameWindow, ex: Executor,
+                   cut: dict[str, tuple[list[CheapFrame], ScoreTable, np.ndarray, np.ndarray | None]],
+                   rule: DetectRule, crops: bool) -> None:
+    """The detector on the frames of each segment that can still be its candidate
+    (:func:`~memlog.steps.map_scoring.detect_segments`); fills their SS, ES and detections in."""
+    djobs: list[tuple[list[CheapFrame], list[int], DetectJob]] = []
+    for t, (good, table, seg, coord) in cut.items():
+        starts = np.flatnonzero(np.concatenate([[True], seg[1:] != seg[:-1]]))
+        ends = np.concatenate([starts[1:], [len(seg)]])
+        for a, e in zip(starts.tolist(), ends.tolist()):
+            rows = list(range(a, e))
+            djobs.append((good, rows, DetectJob(
+                t, [int(table.index[r]) for r in rows], [float(good[r].es_static or 0.0) for r in rows],
+                int(table.t_ns[a]), int(table.t_ns[e - 1]) + 1,
+                None if coord is None else [float(coord[r]) for r in rows])))
+    found: Iterable[dict[int, Detected]]
+    if isinstance(ex, InProcess):
+        own = open_log(log)
+        own.quiet_warnings()
+        found = progress(detect_segments(own, score_cfg, window.stride, (j for _, _, j in djobs), rule, crops),
+                         total=len(djobs), desc="staticity", unit="segment")
+    else:
+        group = max(1, min(32, len(djobs) // max(1, 4 * ex.workers)))
+        batches = [djobs[i:i + group] for i in range(0, len(djobs), group)]
+        wcfg = score_cfg.replace(threads=job_threads(ex, score_cfg.threads))
+        per_batch = progress(ex.map_ordered(detect_chunk, ((log, wcfg, window, [j for _, _, j in b], rule, crops)
+                                                           for b in batches)),
+                             total=len(batches), desc="staticity", unit="job")
+        found = (f for res in per_batch for f in res)
+        own = None
+    try:
+        for (good, rows, _job), got in zip(djobs, found):
+            for r, d in got.items():
+                cf = good[rows[r]]
+                cf.ss, cf.es, cf.detections, cf.crops_needed = d.ss, d.es, d.detections, d.crops_needed
+                cf.timing_ms.update(d.timing_ms)
+    finally:
+        if own is not None:
+            own.close()
+
+
+def staged_stageable(cfg: MapConfig) -> bool:
+    """Whether ``memlog map`` with ``cfg`` scores by the staged selection (:func:`staged_scores`)."""
+    return _stageable(cfg)
+
+
+def staged_scores(log: str | os.PathLike[str], config: MapConfig, window: FrameWindow | None = None,
+                  executor: Executor | None = None, *, stage_staticity: bool = True) -> tuple[Records, ReadReport]:
+    """The score records of ``log`` (per camera topic, as ``T/memlog/scores``) that ``memlog map``
+    with ``config`` computes by the staged selection (``staged_stageable(config)`` must hold):
+    the detector and ResMem only where they can change the map, ``ss``/``es``/``ms`` null where
+    they did not run. ``window``: the frames to score (default: ``config``'s topics and stride).
+    Selecting from these records keeps the frames the map keeps (``stage_staticity=False``: the
+    detector on every frame, as :func:`make_map` has it)."""
+    cfg = config
+    if not _stageable(cfg):
+        raise ConfigError("staged_scores: these settings do not select by the staged segment selection")
+    with open_log(log) as reader:
+        cams = reader.check_camera_topics(window.topics if window is not None and window.topics else cfg.topics)
+        track, motion = read_tracks(reader, cfg.position_topic)
+        w = window if window is not None else FrameWindow(tuple(cams), stride=cfg.stride)
+        w = FrameWindow(tuple(cams), w.start_ns, w.end_ns, w.stride)
+        ex = executor or make_executor(cfg.workers)
+        try:
+            recs, _looks, _crops = _staged(str(log), reader, cfg, cams, track, ex, motion, window=w,
+                                           stage_staticity=stage_staticity)
+        finally:
+            if executor is None:
+                ex.close()
+        return recs, reader.report
 
 
 def _positions(track: PositionTrack | None, frames: list[CheapFrame]) -> np.ndarray | None:
@@ -447,12 +557,17 @@ def make_map(
     scores: str | os.PathLike[str] | Records | None = None,
     executor: Executor | None = None,
     known_descriptors: dict[tuple[str, int], np.ndarray] | None = None,
+    known_patches: dict[tuple[str, int], np.ndarray] | None = None,
+    stage_staticity: bool = True,
 ) -> MapResult:
     """Build the memorable-map log of ``log`` (see module doc). ``scores``: an annotated MCAP of
     ``memlog score`` (or its records) to reuse instead of scoring; ``executor``: where scoring jobs
     run (default: ``config.workers`` local processes); ``known_descriptors``: raw descriptors of
     the configured kind by ``(topic, frame index)``, used instead of describing those frames again
-    (``evaluate`` has them). Raises :class:`EmptyMapError` when nothing would be kept."""
+    (``evaluate`` has them; ``known_patches``: their raw pooled patch features, the same way).
+    ``stage_staticity=False``: the staged selection runs the detector on every frame (the unstaged
+    path; it keeps the same frames, and is kept for comparison). Raises :class:`EmptyMapError`
+    when nothing would be kept."""
     t0 = time.perf_counter()
     cfg = config or MapConfig()
     sel_cfg = cfg.select
@@ -479,7 +594,8 @@ def make_map(
         ex = executor or make_executor(cfg.workers)
         try:
             if scores is None and _stageable(cfg):
-                recs_by_topic, looks, crops = _staged(str(log), reader, cfg, cams, track, ex, motion)
+                recs_by_topic, looks, crops = _staged(str(log), reader, cfg, cams, track, ex, motion,
+                                                      stage_staticity=stage_staticity)
             else:
                 recs_by_topic, looks, crops = _full(str(log), reader, cfg, cams, track, ex, scores)
         finally:
@@ -510,7 +626,8 @@ def make_map(
         describing = None
         if describer is not None:
             describing = ReferenceDescribing(describer, reader, fit_whitening=cfg.whiten and whitening is None,
-                                             whiten_dim=cfg.whiten_dim, whitening=whitening, known=known)
+                                             whiten_dim=cfg.whiten_dim, whitening=whitening, known=known,
+                                             known_patches=known_patches)
         bytes_in = bytes_kept = 0
         counts = reader.message_counts()
         total = None
@@ -553,11 +670,13 @@ def make_map(
             table = None
             if described is not None and describer is not None and dpath is not None and choice is not None:
                 frames, desc, white = described
+                patches, patch_pca = describing.patch_result() if describing is not None else (None, None)
                 extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
                          "keep_fraction": sel_cfg.keep_fraction, "descriptor_choice": choice.to_dict()}
                 moving, stops = _moving(frames, tables, sel_cfg.still_distance)
                 table = build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra,
-                                    whitening=white, moving=moving, stops=stops)
+                                    whitening=white, moving=moving, stops=stops, patches=patches,
+                                    patch_pca=patch_pca)
             # the map and its descriptors as one artefact: each records the other, both in place or neither
             write_map(w, {
                 "descriptor": json.dumps(choice.to_dict() if choice else None, sort_keys=True),
