@@ -139,8 +139,9 @@ def test_evaluate_end_to_end(all_scored: Path, tmp_path: Path) -> None:
     shutil.copyfile(all_scored, out / "reference.scored.mcap")  # reused: same settings
     truth = tmp_path / "truth.json"
     truth.write_text(json.dumps({"matches": [[i] for i in range(8)]}))
+    # --compare-exact: every reference frame scored (the sweeps and the exact selection need every score)
     res = evaluate(DEMO, DEMO, out, EvaluateConfig(select=SelectionConfig(keep_fraction=0.5), reference_topic=COMP,
-                                                   query_topic=RAW, seeds=5), truth=truth)
+                                                   query_topic=RAW, seeds=5, compare_exact=True), truth=truth)
     saved = json.loads((out / "results.json").read_text())
     for name in ("full", "memorable", "uniform", "random"):
         for key in ("frames", "coverage", "auc", "recall@1", "recall@5", "recall@10", "match_seconds_per_query"):
@@ -220,11 +221,11 @@ def test_evaluate_quick_trials_several_descriptors(all_scored: Path, tmp_path: P
                         "--max-frames", "3", "--seeds", "2", "--no-report"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     lines = [ln for ln in r.stdout.splitlines() if ln.startswith(("thumbnail", "dinov2-gem"))]
-    assert len(lines) == 12 and "Traceback" not in r.stderr  # 6 maps per descriptor, one table
+    assert len(lines) == 10 and "Traceback" not in r.stderr  # 5 maps per descriptor (exact: --compare-exact), one table
     maps: dict[str, list[str]] = {}
     for ln in lines:  # the map column: full, memorable (written), its exact selection, and the three baselines
         m = re.match(r"^(\S+)\s+(?:raw|whitened)\s+(.+?)\s{2,}\d", ln)
         assert m, ln
         maps.setdefault(m.group(1), []).append(m.group(2))
-    assert all(m == ["full", "memorable", "memorable (exact)", "every k-th", "uniform by distance", "random"]
+    assert all(m == ["full", "memorable", "every k-th", "uniform by distance", "random"]
                for m in maps.values()), maps  # the demo has GPS: uniform by distance too

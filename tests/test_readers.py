@@ -233,5 +233,8 @@ def test_progress_lines_off_a_terminal_have_totals_and_eta(monkeypatch: pytest.M
     show_messages(quiet=False)  # what the command line shows
     assert list(progress.progress(range(4), total=4, desc="score", unit="frame", every_s=15.0)) == [0, 1, 2, 3]
     lines = capsys.readouterr().err.strip().splitlines()
-    assert lines[0].startswith("memlog: score: 2/4 frames (50 %)") and "s left" in lines[0]
+    # the first line comes before any item after the first was timed: no estimate yet (the wait for
+    # the first item, model loading, is not item time); then the time left, then the total
+    assert lines[0].startswith("memlog: score: 1/4 frames (25 %)") and "estimating the time left" in lines[0]
+    assert any("s left" in ln and "about" in ln for ln in lines[1:-1]), lines
     assert lines[-1].startswith("memlog: score: 4/4 frames (100 %) in ")

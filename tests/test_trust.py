@@ -250,14 +250,14 @@ def test_a_failed_evaluate_keeps_the_previous_results_and_report(tmp_path: Path)
     def stop(*a: object, **k: object) -> None:
         raise Stop
 
-    orig = ev.score
-    ev.score = stop  # type: ignore[assignment]
+    orig = ev.make_map  # every run makes its memorable map, after scoring and describing
+    ev.make_map = stop  # type: ignore[assignment]
     try:
         with pytest.raises(Stop):
             ev.evaluate(DEMO, DEMO, out, ev.EvaluateConfig(reference_topic=COMP, query_topic=RAW, report=False),
                         truth=truth)
     finally:
-        ev.score = orig
+        ev.make_map = orig
     assert (out / "report.html").read_text() == "old report"
     assert (out / "results.json").read_text() == '{"old": true}'
 
