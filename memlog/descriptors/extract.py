@@ -193,7 +193,7 @@ def describe_log(
         kept, desc = describe_frames(frames, describer, reader, views=views, patches=pp, patch_pca=patch_pca)
         extra = {"log": str(reader.path), "log_identity": log_identity(log), "window": w.to_dict()}
         moving, stops = moving_indices(kept, views, still_distance, motion)
-        pat = (np.concatenate(pp) if pp else None) if pp is not None and kept else None
+        pat = np.concatenate(pp) if pp else None
         return build_table(kept, desc, describer, scores=scores, track=track, extra=extra,
                            moving=moving, stops=stops, patches=pat, patch_pca=patch_pca), reader.report
 

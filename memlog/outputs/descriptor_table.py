@@ -247,26 +247,27 @@ def _check_descriptor_field(schema: pa.Schema, dim: int, path: Path) -> str:
     return stored
 
 
-def _read_matrix(pf: pq.ParquetFile, n: int, dim: int, path: Path) -> F32:
-    """The descriptor column as one ``[n, dim]`` float32 matrix, filled batch by batch."""
-    out = np.empty((n, dim), dtype=np.float32)
-    rows = max(1, ROW_GROUP_BYTES // (4 * max(1, dim)))
+def _read_matrix(pf: pq.ParquetFile, n: int, dim: int, path: Path, column: str = "descriptor",
+                 dtype: type[np.floating[Any]] = np.float32) -> npt.NDArray[Any]:
+    """A fixed-size-list ``column`` as one ``[n, dim]`` matrix of ``dtype``, filled batch by batch."""
+    out = np.empty((n, dim), dtype=dtype)
+    rows = max(1, ROW_GROUP_BYTES // (np.dtype(dtype).itemsize * max(1, dim)))
     start = 0
     # one thread, no pre-buffering: Arrow then holds about one row group (measured fastest here too)
-    for batch in pf.iter_batches(batch_size=rows, columns=["descriptor"], use_threads=False):
+    for batch in pf.iter_batches(batch_size=rows, columns=[column], use_threads=False):
         col = batch.column(0)
         if col.null_count:
-            raise DescriptorError(f"{path}: {col.null_count} descriptor(s) are null")
+            raise DescriptorError(f"{path}: {col.null_count} {column}(s) are null")
         values = col.flatten()  # honours the slice offset; no copy
         if values.null_count:
-            raise DescriptorError(f"{path}: descriptors hold {values.null_count} null value(s)")
+            raise DescriptorError(f"{path}: {column} holds {values.null_count} null value(s)")
         m = len(col)
         if start + m > n:
-            raise DescriptorError(f"{path}: more descriptor rows than the file's {n} rows")
+            raise DescriptorError(f"{path}: more {column} rows than the file's {n} rows")
         out[start : start + m] = values.to_numpy(zero_copy_only=True).reshape(m, dim)
         start += m
     if start != n:
-        raise DescriptorError(f"{path}: read {start} descriptor rows of {n}")
+        raise DescriptorError(f"{path}: read {start} {column} rows of {n}")
     return out
 
 
@@ -344,21 +345,7 @@ def _read_patches(pf: pq.ParquetFile, schema: pa.Schema, path: Path
             or typ.list_size != shape[0] * shape[1] or (pca is not None and shape[1] != pca.dim)):
         raise DescriptorError(f"{path}: patches column {typ} does not match its metadata (shape {shape})")
     n = pf.metadata.num_rows
-    out = np.empty((n, shape[0] * shape[1]), dtype=np.float16)
-    start = 0
-    for batch in pf.iter_batches(batch_size=max(1, ROW_GROUP_BYTES // (2 * typ.list_size)), columns=["patches"],
-                                 use_threads=False):
-        col = batch.column(0)
-        values = col.flatten()
-        if col.null_count or values.null_count:
-            raise DescriptorError(f"{path}: the patches column holds nulls")
-        m = len(col)
-        if start + m > n:
-            raise DescriptorError(f"{path}: more patch rows than the file's {n} rows")
-        out[start : start + m] = values.to_numpy(zero_copy_only=True).reshape(m, -1)
-        start += m
-    if start != n:
-        raise DescriptorError(f"{path}: read {start} patch rows of {n}")
+    out = _read_matrix(pf, n, shape[0] * shape[1], path, "patches", np.float16)
     return out.reshape(n, *shape), pca
 
 
