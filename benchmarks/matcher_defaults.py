@@ -25,6 +25,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -66,14 +67,15 @@ def metrics(indices: np.ndarray, confidence: np.ndarray, truth: list[set[int]]) 
     return {"r1": float(ok.mean()), "r5": float(r5), "auc": curve.auc, "p10": p_at(0.1), "p50": p_at(0.5)}
 
 
-def _map(cache: Path, pair: str, which: str) -> Path:
-    """``memlog map`` of the pair's reference at a keep fraction (written once into ``cache``)."""
+def _map(cache: Path, pair: str, which: str, args: Sequence[str] = ()) -> Path:
+    """``memlog map`` of the pair's reference at a keep fraction, with more ``args`` (written once
+    into ``cache``: give each set of ``args`` a cache of its own)."""
     out = cache / f"{pair}-{which}.mcap"
     if not out.with_suffix(".parquet").is_file() or not _current(out.with_suffix(".parquet")):
         from memlog.cli.app import main as memlog
 
         ref = SHARED / PAIRS[pair][0]
-        if memlog(["-q", "map", str(ref), "-o", str(out), "--keep-fraction", str(FRACTIONS[which])]) != 0:
+        if memlog(["-q", "map", str(ref), "-o", str(out), "--keep-fraction", str(FRACTIONS[which]), *args]) != 0:
             raise SystemExit(f"memlog map {ref} failed")
     return out.with_suffix(".parquet")
 

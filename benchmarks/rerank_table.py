@@ -42,14 +42,17 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-matcher-defaults-2"))
     ap.add_argument("--pairs", nargs="+", default=list(MAPS), choices=list(MAPS))
+    ap.add_argument("--maps", nargs="+", choices=list(FRACTIONS), help="Stromovka's maps (default all three)")
+    ap.add_argument("--map-args", default="", metavar="ARGS",
+                    help="more `memlog map` flags, e.g. \"--whiten-on drive\" (use a --cache of its own)")
     a = ap.parse_args()
     a.cache.mkdir(parents=True, exist_ok=True)
     print("| data | map (frames) | matching | R@1 | R@5 | AUC-PR | P@50%R | map bytes/frame | ms/query |\n"
           "|---|---|---|---|---|---|---|---|---|")
     for pair in a.pairs:
         truth = [set(m) for m in json.loads((SHARED / PAIRS[pair][2]).read_text())["matches"]]
-        for which in MAPS[pair]:
-            parquet = _map(a.cache, pair, which)
+        for which in (a.maps or MAPS[pair]) if pair == "stromovka" else MAPS[pair]:
+            parquet = _map(a.cache, pair, which, a.map_args.split())
             ref, query = _query(a.cache, pair, parquet)
             per_frame = parquet.stat().st_size / max(1, len(ref))
             for name, settings in ROWS.items():

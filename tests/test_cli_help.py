@@ -16,7 +16,8 @@ from memlog.cli.flags import GROUPS
 
 #: Every action of every subcommand as the parser built it before its flags were grouped (captured from
 #: that parser by a script): (command, option strings, dest, default, type, action, nargs, const,
-#: choices, required). Grouping changes where --help shows a flag, never this.
+#: choices, required). Grouping changes where --help shows a flag, never this. Flags added since are
+#: added here with their command (--whiten-on: map, batch, evaluate).
 CONTRACT = {
     ('batch', ('--actors-per-gpu',), 'actors_per_gpu', None, 'positive_int', '_StoreAction', None, None, None, False),
     ('batch', ('--all-scores',), 'all_scores', None, None, '_StoreTrueAction', 0, True, None, False),
@@ -65,6 +66,7 @@ CONTRACT = {
     ('batch', ('--summary',), 'summary', None, None, '_StoreAction', None, None, None, False),
     ('batch', ('--threads',), 'threads', None, 'nonneg_int', '_StoreAction', None, None, None, False),
     ('batch', ('--whiten-dim',), 'whiten_dim', None, 'positive_int', '_StoreAction', None, None, None, False),
+    ('batch', ('--whiten-on',), 'whiten_on', None, None, '_StoreAction', None, None, ('kept', 'drive'), False),
     ('batch', ('--workers',), 'workers', None, 'positive_int', '_StoreAction', None, None, None, False),
     ('batch', ('-o', '--output'), 'output', None, None, '_StoreAction', None, None, None, True),
     ('batch', ('-q', '--quiet'), 'quiet', '==SUPPRESS==', None, '_StoreTrueAction', 0, True, None, False),
@@ -105,6 +107,7 @@ CONTRACT = {
     ('evaluate', ('--no-report',), 'no_report', False, None, '_StoreTrueAction', 0, True, None, False),
     ('evaluate', ('--no-rerank',), 'no_rerank', False, None, '_StoreTrueAction', 0, True, None, False),
     ('evaluate', ('--no-whiten',), 'no_whiten', False, None, '_StoreTrueAction', 0, True, None, False),
+    ('evaluate', ('--whiten-on',), 'whiten_on', None, None, '_StoreAction', None, None, ('kept', 'drive'), False),
     ('evaluate', ('--normalize',), 'normalize', None, None, '_StoreAction', None, None, ('all', 'static'), False),
     ('evaluate', ('--paper-discarded',), 'paper_discarded', None, None,
      '_StoreAction', None, None, ('false_negative', 'true_negative', 'uncovered_negative'), False),
@@ -209,6 +212,7 @@ CONTRACT = {
     ('map', ('--stride',), 'stride', None, 'positive_int', '_StoreAction', None, None, None, False),
     ('map', ('--threads',), 'threads', None, 'nonneg_int', '_StoreAction', None, None, None, False),
     ('map', ('--whiten-dim',), 'whiten_dim', None, 'positive_int', '_StoreAction', None, None, None, False),
+    ('map', ('--whiten-on',), 'whiten_on', None, None, '_StoreAction', None, None, ('kept', 'drive'), False),
     ('map', ('--workers',), 'workers', None, 'positive_int', '_StoreAction', None, None, None, False),
     ('map', ('-o', '--output'), 'output', None, None, '_StoreAction', None, None, None, True),
     ('map', ('-q', '--quiet'), 'quiet', '==SUPPRESS==', None, '_StoreTrueAction', 0, True, None, False),

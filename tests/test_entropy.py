@@ -14,10 +14,20 @@ from skimage.filters.rank import entropy as sk_entropy
 from skimage.morphology import disk
 
 from memlog.errors import ScoringError
-from memlog.scoring.entropy import Entropy, disk_footprint, entropy_map, entropy_score
-from tests.conftest import shared
+from memlog.scoring import entropy as entropy_mod
+from memlog.scoring.entropy import Entropy, disk_footprint, entropy_kernel, entropy_map, entropy_score
+from tests.conftest import shared, skip_or_fail
 
 TOL = 1e-9
+
+
+@pytest.fixture(params=["c", "numpy"])
+def kernel(request: pytest.FixtureRequest) -> str:
+    """Both implementations: the compiled kernel (built by ``pip install``; CI has a C compiler, so
+    there it must be built) and the numpy one."""
+    if request.param == "c" and entropy_mod._compiled() is None:
+        skip_or_fail("memlog's compiled entropy kernel is not built (no C compiler when memlog was installed)")
+    return str(request.param)
 
 
 def _reference(gray: npt.NDArray[np.uint8], radius: int = 5) -> npt.NDArray[np.float64]:
@@ -44,17 +54,17 @@ def test_footprint_is_skimage_disk(radius: int) -> None:
     assert np.array_equal(disk_footprint(radius), disk(radius))
 
 
-def test_random_image_matches_skimage() -> None:
+def test_random_image_matches_skimage(kernel: str) -> None:
     gray = np.random.default_rng(0).integers(0, 256, (301, 419), dtype=np.uint8)
-    e = entropy_map(gray)
+    e = entropy_map(gray, kernel=kernel)
     assert e.dtype == np.float64 and e.shape == gray.shape
     assert np.abs(e - _reference(gray)).max() <= TOL
 
 
-def test_real_frame_1135_matches_skimage() -> None:
+def test_real_frame_1135_matches_skimage(kernel: str) -> None:
     gray = _nordland_gray()
     assert gray.shape == (1135, 1135) and gray.std() > 5  # a real, textured frame
-    e = entropy_map(gray)
+    e = entropy_map(gray, kernel=kernel)
     ref = _reference(gray)
     assert np.abs(e - ref).max() <= TOL
     assert 0.0 < e.mean() < 8.0
@@ -62,18 +72,18 @@ def test_real_frame_1135_matches_skimage() -> None:
 
 @pytest.mark.parametrize("shape", [(37, 53), (53, 37), (1, 1), (1, 9), (9, 1), (4, 4), (11, 11), (12, 131)])
 @pytest.mark.parametrize("radius", [1, 2, 5, 8])
-def test_odd_sizes_and_borders(shape: tuple[int, int], radius: int) -> None:
+def test_odd_sizes_and_borders(shape: tuple[int, int], radius: int, kernel: str) -> None:
     """Edge pixels count only their in-image neighbours, like scikit-image."""
     rng = np.random.default_rng(shape[0] * 1000 + shape[1] * 10 + radius)
     for levels in (256, 3):  # many values; few values (ties in every histogram)
         gray = rng.integers(0, levels, shape, dtype=np.uint8)
-        assert np.abs(entropy_map(gray, radius) - _reference(gray, radius)).max() <= TOL
+        assert np.abs(entropy_map(gray, radius, kernel=kernel) - _reference(gray, radius)).max() <= TOL
 
 
-def test_large_radius_uses_wide_counts() -> None:
+def test_large_radius_uses_wide_counts(kernel: str) -> None:
     """disk(10) has 317 pixels: counts no longer fit uint8."""
     gray = np.random.default_rng(11).integers(0, 256, (45, 70), dtype=np.uint8)
-    assert np.abs(entropy_map(gray, 10) - _reference(gray, 10)).max() <= TOL
+    assert np.abs(entropy_map(gray, 10, kernel=kernel) - _reference(gray, 10)).max() <= TOL
 
 
 def test_border_pixel_by_hand() -> None:
@@ -134,9 +144,44 @@ def test_score_masks_dynamic_pixels() -> None:
     assert entropy_score(e, s.astype(bool)) == entropy_score(e, s)
 
 
-def test_workers_give_the_same_map() -> None:
+def test_workers_give_the_same_map(kernel: str) -> None:
     gray = np.random.default_rng(5).integers(0, 256, (260, 300), dtype=np.uint8)
-    assert np.abs(entropy_map(gray, workers=2) - entropy_map(gray)).max() <= 1e-12
+    one = entropy_map(gray, kernel=kernel)
+    assert np.abs(entropy_map(gray, workers=2, kernel=kernel) - one).max() <= 1e-12
+    assert np.abs(entropy_map(gray, workers=3, kernel=kernel) - one).max() <= 1e-12
+
+
+def test_the_two_kernels_agree_on_a_camera_frame(kernel: str) -> None:
+    """The compiled kernel and the numpy one on a real 1135 x 1135 frame: the same map up to float
+    rounding, so scores (and the frames a map keeps) do not depend on which one ran."""
+    gray = _nordland_gray()
+    other = "numpy" if kernel == "c" else "c"
+    if other == "c" and entropy_mod._compiled() is None:
+        skip_or_fail("memlog's compiled entropy kernel is not built")
+    a, b = entropy_map(gray, kernel=kernel), entropy_map(gray, kernel=other)
+    assert np.abs(a - b).max() <= 1e-12
+    assert entropy_score(a) == pytest.approx(entropy_score(b), abs=1e-13)
+
+
+def test_kernel_choice(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``auto`` takes the compiled kernel when it is built; the environment can force numpy; asking
+    for the compiled kernel without it is a clear error, not a silent fallback."""
+    monkeypatch.delenv("MEMLOG_ENTROPY_KERNEL", raising=False)
+    built = entropy_mod._compiled() is not None
+    assert entropy_kernel() == ("c" if built else "numpy")
+    assert entropy_kernel("numpy") == "numpy"
+    monkeypatch.setenv("MEMLOG_ENTROPY_KERNEL", "numpy")
+    assert entropy_kernel() == "numpy" and Entropy(5).kernel == "numpy"
+    monkeypatch.setenv("MEMLOG_ENTROPY_KERNEL", "fortran")
+    with pytest.raises(ScoringError, match="MEMLOG_ENTROPY_KERNEL"):
+        entropy_kernel()
+    monkeypatch.delenv("MEMLOG_ENTROPY_KERNEL")
+    with pytest.raises(ScoringError, match="kernel must be one of"):
+        entropy_map(np.zeros((4, 4), np.uint8), kernel="gpu")
+    monkeypatch.setattr(entropy_mod, "_compiled", lambda: None)
+    assert entropy_kernel() == "numpy"
+    with pytest.raises(ScoringError, match="C compiler"):
+        entropy_map(np.zeros((4, 4), np.uint8), kernel="c")
 
 
 def test_class_is_a_thin_wrapper() -> None:

@@ -264,3 +264,19 @@ def test_the_report_renders_in_headless_chromium(tmp_path: Path) -> None:
     img = cv2.imread(str(shot))
     assert img is not None and img.shape[:2] == (1000, 1400)
     assert (img < 200).any(axis=2).mean() > 0.02  # text and pictures, not a blank page
+
+
+def test_sweeps_and_contribution_not_computed_say_why(tmp_path: Path) -> None:
+    """evaluate without --compare-exact scores the reference as memlog map does (scores left null where
+    they change nothing): the sweeps and the contribution are not computed, and the report says why
+    instead of drawing them; the score histograms leave the null scores out."""
+    kw = _inputs()
+    why = "not computed: the reference was scored as memlog map scores it; run evaluate with --compare-exact"
+    kw["results"] = dict(kw["results"], sweeps={"skipped": why}, criterion_contribution={"skipped": why})
+    kw["table"].ms[:] = np.nan  # (ResMem ran on none of the frames)
+    kw["table"].ss[::2] = np.nan
+    text = _write(tmp_path / "report.html", **kw)
+    sweeps = text[text.index("<h2 id=\"sweeps\">"):text.index("<h2 id=\"scores\">")]
+    assert "id='no-sweeps'" in sweeps and "--compare-exact" in sweeps and "<svg" not in sweeps
+    contrib = text[text.index("<h2 id=\"criteria\">"):]
+    assert "--compare-exact" in contrib[:600] and "<table class='contribution'" not in contrib

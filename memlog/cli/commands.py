@@ -181,6 +181,13 @@ def cmd_models(args: argparse.Namespace) -> int:
     missing = [m.name for m in models if not m.ready and m.name in wanted]
     if missing:
         print(f"\nmissing: {', '.join(missing)}: run `memlog models prepare`")
+    from memlog.scoring.entropy import entropy_kernel
+
+    if entropy_kernel() == "c":
+        print("\nentropy: memlog's compiled kernel")
+    else:
+        print("\nentropy: numpy (the compiled kernel is not built: reinstall memlog with a C compiler present "
+              "for entropy about three times faster)")
     if any(m.name == "resmem-int8" and not m.ready for m in models):
         print("\nfast mode (--fast) needs `memlog models prepare resmem-int8` (about 10 minutes, once)")
     print("\nNote: ResMem weights (memorability) are licensed for NON-COMMERCIAL use only "
@@ -324,6 +331,9 @@ def _add_map_settings(groups: FlagGroups, workers: Callable[[argparse._ActionsCo
                      help="do not fit and store a PCA-whitening of the descriptors (default: whitened)")
     out.add_argument("--whiten-dim", type=positive_int, metavar="D",
                      help="largest whitened dimension (default 512; never more than half the frames)")
+    out.add_argument("--whiten-on", choices=["kept", "drive"],
+                     help="frames the whitening is fitted on: kept (default; the network describes the kept frames "
+                          "only) or drive (every frame, each described: slower)")
     add_selection_flags(groups)
     _add_candidates(groups["selection"])
     add_score_flags(groups, workers)
@@ -378,6 +388,8 @@ def map_config(args: argparse.Namespace) -> Any:
         flags["whiten"] = False
     if args.whiten_dim is not None:
         flags["whiten_dim"] = args.whiten_dim
+    if args.whiten_on is not None:
+        flags["whiten_on"] = args.whiten_on
     return build(MapConfig, flags, "flags", cfg) if flags else cfg
 
 
@@ -692,6 +704,8 @@ def add_evaluate(sub: Any) -> None:
                      help="auto (default: by frame size), a kind (thumbnail, dinov2-gem, ...), or several "
                           "comma-separated (each described once and cached; one table)")
     cmp.add_argument("--no-whiten", action="store_true", help="evaluate unwhitened maps (default: whitened)")
+    cmp.add_argument("--whiten-on", choices=["kept", "drive"],
+                     help="frames the map's whitening is fitted on, as memlog map --whiten-on (default kept)")
     cmp.add_argument("--seeds", type=positive_int, metavar="N", help="random baseline seeds (default 20)")
     cmp.add_argument("--compare-exact", action="store_true",
                      help="also evaluate the exact selection (every reference frame's memorability scored; slower)")
@@ -716,7 +730,7 @@ def evaluate_config(args: argparse.Namespace) -> Any:
     where = f"{args.config}: [evaluate]" if getattr(args, "config", None) else "[evaluate]"
     cfg = build(EvaluateConfig, file_section(args, "evaluate"), where, EvaluateConfig(score=score, select=select))
     flags: dict[str, Any] = {}
-    for key, dest in (("descriptor", "descriptor"), ("tol_m", "tolerance"), ("seeds", "seeds"),
+    for key, dest in (("descriptor", "descriptor"), ("whiten_on", "whiten_on"), ("tol_m", "tolerance"), ("seeds", "seeds"),
                       ("paper_discarded", "paper_discarded"), ("reference_topic", "reference_topic"),
                       ("query_topic", "query_topic")):
         v = getattr(args, dest)

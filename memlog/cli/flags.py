@@ -321,7 +321,7 @@ _FLAG_OF = {
     "--select segment", "stride": "--stride", "jpeg_quality": "--jpeg-quality", "threads": "--threads",
     "image_format": "--image-format", "tolerance": "--tolerance", "seeds": "--seeds", "dt": "--dt",
     "distinct_weight": "--distinct-weight", "near_distance": "--near-distance", "duplicates": "--duplicates",
-    "max_frames": "--max-frames", "whiten_dim": "--whiten-dim",
+    "max_frames": "--max-frames", "whiten_dim": "--whiten-dim", "whiten_on": "--whiten-on",
 }
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -39,13 +40,17 @@ from memlog.models.dinov2 import (
     SOURCE_SHA256,
     TOKENS_OUTPUT,
     WIDTH,
-    dinov2_session,
+    dinov2_file,
     layer_output,
 )
+from memlog.models.runtime import make_session
 
 __all__ = ["DinoV2Describer", "preprocess", "pool_tokens", "centre_crop", "POOLINGS"]
 
 POOLINGS = ("cls", "gem", "mean")
+
+#: Builds describers' ONNX Runtime sessions off the caller's thread (see ``DinoV2Describer.__init__``).
+_LOADER = ThreadPoolExecutor(max_workers=2, thread_name_prefix="memlog-model-load")
 
 F32 = npt.NDArray[np.float32]
 IMAGENET_MEAN = np.array(IMAGENET_MEAN_RGB, dtype=np.float32)
@@ -146,7 +151,18 @@ class DinoV2Describer(Describer):
         self._output = TOKENS_OUTPUT if layer is None else layer_output(layer)
         self.model_path = Path(model_path) if model_path is not None else None
         self.model_sha256 = SOURCE_SHA256
-        self._session = dinov2_session(self.model_path, threads=threads, device=device)
+        # The model is checked now (a missing one fails here) and its session built on a thread, so
+        # the caller's other work (a map's scoring pass) overlaps it; the first describe waits for it.
+        path = dinov2_file(self.model_path)
+        self._sess: Any = None
+        self._loading = _LOADER.submit(make_session, path, threads=threads, device=device, what="the DINOv2 model")
+
+    @property
+    def _session(self) -> Any:
+        """The ONNX Runtime session (waits for it to be built; its :class:`ModelError` is raised here)."""
+        if self._sess is None:
+            self._sess = self._loading.result()
+        return self._sess
 
     @property
     def params(self) -> dict[str, Any]:

@@ -19,7 +19,7 @@ from memlog.descriptors.base import Describer
 from memlog.descriptors.patches import PatchPCA, PatchPCAFitter, PatchStore
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import WhitenedDescriber, Whitening, WhiteningFitter
-from memlog.errors import ImageDecodeError
+from memlog.errors import DescriptorError, ImageDecodeError
 from memlog.io.base import FrameWindow, LogReader
 from memlog.io.frame import Frame
 from memlog.io.identity import log_identity
@@ -201,9 +201,10 @@ def describe_log(
 class ReferenceDescribing:
     """Describes reference frames in batches while a map is written (bounded memory).
 
-    ``add(frame, keep)``: every frame added feeds the whitening fit when ``fit_whitening`` is
-    set (so the transform is learned from the whole drive, not only the kept frames); only kept
-    frames' descriptors are stored (frames without their pixels). ``whitening``: a transform
+    ``add(frame, keep)``: with ``fit_whitening``, the whitening is fitted on the kept frames
+    (``fit_on="kept"``: frames that are not kept are not described at all) or on every frame added
+    (``fit_on="drive"``: the transform is learned from the whole drive); only kept frames'
+    descriptors are stored (frames without their pixels). ``whitening``: a transform
     fitted beforehand (e.g. with the distinctiveness pass) to apply instead of fitting one;
     ``known``: raw descriptors already computed, by ``(topic, frame index)``, used instead of
     describing again (``known_patches``: their raw pooled patch features). :meth:`result`
@@ -214,6 +215,7 @@ class ReferenceDescribing:
     """
 
     def __init__(self, describer: Describer, reader: LogReader, *, fit_whitening: bool = False,
+                 fit_on: str = "kept",
                  whiten_dim: int | None = None, whitening: Whitening | None = None,
                  known: Mapping[tuple[str, int], np.ndarray] | None = None,
                  known_patches: Mapping[tuple[str, int], np.ndarray] | None = None,
@@ -221,7 +223,10 @@ class ReferenceDescribing:
         self.describer, self.reader, self.batch = describer, reader, batch
         self.whitening = whitening
         self.whiten_dim = whiten_dim
+        if fit_on not in ("kept", "drive"):
+            raise DescriptorError(f"fit_on must be kept or drive, got {fit_on!r}")
         self.fitter = WhiteningFitter(describer.dim) if fit_whitening and whitening is None else None
+        self.fit_all = fit_on == "drive"
         self.known = known or {}
         self.known_patches = known_patches or {}
         self.patches = patches and describer.gives_patches
@@ -233,11 +238,11 @@ class ReferenceDescribing:
 
     @property
     def wants_all_frames(self) -> bool:
-        """Whether frames that are not kept must be added too (to fit the whitening)."""
-        return self.fitter is not None
+        """Whether frames that are not kept must be added too (to fit the whitening on the drive)."""
+        return self.fitter is not None and self.fit_all
 
     def add(self, frame: Frame, keep: bool) -> None:
-        if not keep and self.fitter is None:
+        if not keep and not self.wants_all_frames:
             return
         key = (frame.topic, frame.index)
         row = self.known.get(key)

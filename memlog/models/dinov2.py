@@ -40,6 +40,7 @@ __all__ = [
     "dinov2_model_path",
     "dinov2_pins",
     "dinov2_session",
+    "dinov2_file",
     "source_model_path",
     "SOURCE_SHA256",
     "TOKENS_OUTPUT",
@@ -195,13 +196,17 @@ def prepare_dinov2(*, force: bool = False, quiet: bool = False) -> Path:
     return target
 
 
-def dinov2_session(model_path: Path | None = None, *, threads: int | None = None, device: str = "auto") -> Any:
-    """An ONNX Runtime session of the prepared DINOv2 backbone (or of ``model_path``, which must be
-    a model made by :func:`prepare_dinov2`); :class:`ModelError` naming the command when missing."""
+def dinov2_file(model_path: Path | None = None) -> Path:
+    """The prepared DINOv2 backbone (or ``model_path``, which must be a model made by
+    :func:`prepare_dinov2`); :class:`ModelError` naming the command when missing."""
     if model_path is None:
-        path = cache.require(dinov2_model_path(), dinov2_pins(), "the DINOv2 descriptor model", "memlog models prepare")
-    else:
-        path = Path(model_path)
-        if not path.is_file():
-            raise ModelError(f"DINOv2 model {path} is missing; run `memlog models prepare`")
-    return make_session(path, threads=threads, device=device, what="the DINOv2 model")
+        return cache.require(dinov2_model_path(), dinov2_pins(), "the DINOv2 descriptor model", "memlog models prepare")
+    path = Path(model_path)
+    if not path.is_file():
+        raise ModelError(f"DINOv2 model {path} is missing; run `memlog models prepare`")
+    return path
+
+
+def dinov2_session(model_path: Path | None = None, *, threads: int | None = None, device: str = "auto") -> Any:
+    """An ONNX Runtime session of the prepared DINOv2 backbone (:func:`dinov2_file`)."""
+    return make_session(dinov2_file(model_path), threads=threads, device=device, what="the DINOv2 model")

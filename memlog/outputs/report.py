@@ -486,6 +486,8 @@ def _kv_tables(sections: Sequence[tuple[str, Sequence[tuple[str, str]]]], ident:
 
 
 def _contribution_html(contrib: Mapping[str, Any]) -> str:
+    if "skipped" in contrib:
+        return f"<p id='contribution'>{html.escape(str(contrib['skipped']))}.</p>"
     th = contrib.get("thresholds") or {}
     keys = {"staticity": "st", "entropy": "et", "memorability": "mt"}
     rows = []
@@ -539,11 +541,15 @@ def write_report(path: Path, results: dict[str, Any], table: ScoreTable, sel: Se
           svg_lines([(name, list(po.curve.recall), list(po.curve.precision)) for name, (_, po) in per_variant.items()],
                     title="PR curves (paper protocol)", xlabel="recall", ylabel="precision", xlim=(0, 1), ylim=(0, 1))]
     sw = results["sweeps"]
-    sweeps = [svg_lines([(n.upper(), [r["threshold"] for r in sw[n]], [r["frames"] for r in sw[n]]) for n in sw],
-                        title="sweep: selected frames", xlabel="threshold (others 0)", ylabel="frames"),
-              svg_lines([(n.upper(), [r["threshold"] for r in sw[n]], [r["auc"] for r in sw[n]]) for n in sw]
-                        + [(n.upper() + " paper", [r["threshold"] for r in sw[n]], [r["paper_auc"] for r in sw[n]]) for n in sw],
-                        title="sweep: AUC", xlabel="threshold (others 0)", ylabel="AUC", ylim=(0, 1))]
+    if "skipped" in sw:  # (the staged scoring leaves scores out: evaluate --compare-exact has them)
+        sweeps = [f"<p id='no-sweeps'>{html.escape(str(sw['skipped']))}.</p>"]
+    else:
+        sweeps = [svg_lines([(n.upper(), [r["threshold"] for r in sw[n]], [r["frames"] for r in sw[n]]) for n in sw],
+                            title="sweep: selected frames", xlabel="threshold (others 0)", ylabel="frames"),
+                  svg_lines([(n.upper(), [r["threshold"] for r in sw[n]], [r["auc"] for r in sw[n]]) for n in sw]
+                            + [(n.upper() + " paper", [r["threshold"] for r in sw[n]], [r["paper_auc"] for r in sw[n]])
+                               for n in sw],
+                            title="sweep: AUC", xlabel="threshold (others 0)", ylabel="AUC", ylim=(0, 1))]
     hists = [svg_histogram(table.ms, title="MS", threshold=th.get("mt")),
              svg_histogram(table.ss, title="SS", threshold=th.get("st")),
              svg_histogram(table.es, title="ES", threshold=th.get("et"))]

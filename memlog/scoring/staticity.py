@@ -219,6 +219,13 @@ class Staticity:
             self._net = load_detector(self.device)
         return self._net
 
+    def warm(self) -> None:
+        """Load the detector and run its first forward (slower than the others) on a blank frame,
+        so that a thread can do both while other work goes on."""
+        net = self.net
+        with self._lock:
+            detect(net, np.zeros((self.size, self.size, 3), np.uint8), min_conf=self.conf, dynamic=self.dynamic)
+
     def __call__(self, bgr1135: npt.NDArray[np.uint8]) -> tuple[npt.NDArray[np.uint8], float, list[Detection]]:
         frame = _check_frame(bgr1135, self.size)
         net = self.net

@@ -1,13 +1,15 @@
 """Pipeline step ``evaluate``: does the memorable map help localization?
 
 Given a reference log, a query log and ground truth (a JSON ``matches`` file, or positions in
-both logs with a distance tolerance), it scores the reference with every score
-(``OUT/reference.scored.mcap``), describes both drives (``OUT/{reference,query}.<kind>.parquet``),
-writes the memorable-map log (``OUT/map.mcap`` + ``OUT/map.parquet``) and evaluates, under the
-map-only and the paper protocol, the full map, the memorable map (exactly the frames the map
-step kept) and the baselines of the same size (uniform; random, 20 seeds). It adds the paper's
-threshold sweeps, the criterion contribution, map size and matching time, and writes
-``OUT/results.json`` and ``OUT/report.html``.
+both logs with a distance tolerance), it scores the reference as ``memlog map`` does (staged: the
+detector and ResMem only where they can change the map; with ``compare_exact``, every score of
+every frame, ``OUT/reference.scored.mcap``), describes both drives
+(``OUT/{reference,query}.<kind>.parquet``), writes the memorable-map log (``OUT/map.mcap`` +
+``OUT/map.parquet``) and evaluates, under the map-only and the paper protocol, the full map, the
+memorable map (exactly the frames the map step kept) and the baselines of the same size
+(uniform; random, 20 seeds). It adds map size and matching time and, when every reference frame
+has every score (``compare_exact``), the paper's threshold sweeps and the criterion contribution
+(otherwise each says why it is missing), and writes ``OUT/results.json`` and ``OUT/report.html``.
 
 Outputs already in OUT are reused only when they were made from the same input (path, size,
 modification time) with the same settings; the run says which it reused and which it refused.
@@ -16,7 +18,8 @@ Quick trials: ``window`` (start/end/stride, resolved per log) and ``max_frames``
 drives to part of them; ``descriptors`` evaluates several descriptors in one run (each drive is
 described once per descriptor and cached as ``OUT/{reference,query}.<kind>.parquet``; the map of
 each is ``OUT/map.<kind>.mcap`` when there are several). With ``whiten`` (the default) every map
-is whitened by the transform the map step fitted on the reference drive, and the same transform
+is whitened by the transform the map step fitted (on the memorable map's kept frames, or the whole
+reference drive with ``whiten_on="drive"``), and the same transform
 is applied to the query descriptors; the unwhitened full map is reported beside it
 (``full_unwhitened``).
 """
@@ -79,7 +82,8 @@ class EvaluateConfig:
 
     ``descriptor``: the VPR descriptor (``auto``: by frame size; several comma-separated names
     are evaluated one after the other, the first being the main result); ``whiten``: whiten
-    with the map's transform; ``window``/``max_frames``: evaluate on part of both drives (quick
+    with the map's transform (``whiten_on``: fitted on the map's kept frames or the whole drive,
+    as ``memlog map --whiten-on``); ``window``/``max_frames``: evaluate on part of both drives (quick
     trials; ``query_window``: the query's own time window when it differs, e.g. ``+S`` times
     resolved against each log); ``tol_m``: position truth tolerance (metres); ``k``:
     candidates per query; ``seeds``: random baselines; ``paper_discarded``: how the paper
@@ -96,6 +100,7 @@ class EvaluateConfig:
     select: SelectionConfig = field(default_factory=SelectionConfig)
     descriptor: str = AUTO
     whiten: bool = True
+    whiten_on: Literal["kept", "drive"] = "kept"
     window: FrameWindow = FrameWindow()
     query_window: FrameWindow | None = None
     max_frames: int | None = None
@@ -432,7 +437,7 @@ def evaluate(
         map_path = out / ("map.mcap" if len(kinds) == 1 else f"map.{kind}.mcap")
         map_res = make_map(reference, map_path,
                            MapConfig(score=score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=kind,
-                                     whiten=cfg.whiten, candidates=cfg.candidates),
+                                     whiten=cfg.whiten, whiten_on=cfg.whiten_on, candidates=cfg.candidates),
                            scores=in_window,
                            known_descriptors={(ref_topic, int(i)): ref_t.descriptors[r]
                                               for r, i in enumerate(ref_t.frame_index)},
@@ -495,10 +500,21 @@ def evaluate(
     results["whitening"] = first["whitening"]
     results["descriptors"] = by_kind
 
-    # 6. sweeps, contribution, size and time (main descriptor)
-    results["sweeps"] = _sweeps(table, matching, truth_rows, cfg)
-    th = sel.thresholds if cfg.select.mode == "paper" and sel.thresholds else cfg.select.thresholds
-    results["criterion_contribution"] = _contribution(table, per_variant["full"][0], th)
+    # 6. sweeps, contribution, size and time (main descriptor). The sweeps and the contribution apply
+    # the paper's rule to every reference frame, so they need every score of every frame: without them
+    # (the staged scoring, --compare-exact not given) they say so instead of counting the frames not
+    # scored as failing.
+    missing = [c for c in ("ms", "ss", "es") if not np.isfinite(getattr(table, c)).all()]
+    if missing:
+        why = (f"not computed: the reference was scored as memlog map scores it (staged), so {', '.join(missing)} "
+               "is null for frames that could not change the map; run evaluate with --compare-exact for every "
+               "score of every frame")
+        results["sweeps"] = {"skipped": why}
+        results["criterion_contribution"] = {"skipped": why}
+    else:
+        results["sweeps"] = _sweeps(table, matching, truth_rows, cfg)
+        th = sel.thresholds if cfg.select.mode == "paper" and sel.thresholds else cfg.select.thresholds
+        results["criterion_contribution"] = _contribution(table, per_variant["full"][0], th)
     results["map_size"] = map_res.to_dict()
     results["map_size"].pop("topics", None)
     results["truth"] = truth_src

@@ -24,6 +24,7 @@ import json
 import os
 import time
 from collections.abc import Iterable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -57,6 +58,7 @@ from memlog.selection import ScoreTable, Selection
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.selection.segment import SegmentConfig, cut_segments
 from memlog.selection.staged import MSState, StaticityMode, staticity_mode
+from memlog.steps import map_scoring
 from memlog.steps.map_scoring import (CheapFrame, Detected, DetectJob, DetectRule, SegmentJob, cheap_frames,
                                       choose_chunk, detect_chunk, detect_segments, staged_record)
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
@@ -82,8 +84,11 @@ class MapConfig:
     are encoded; ``descriptor``: reference descriptor kind (``"auto"``: chosen from the frame
     size, :mod:`memlog.descriptors.auto`; None: no descriptors); ``descriptors_path``: the Parquet
     file (default: the map path with ``.parquet``); ``descriptor_dtype``: how it stores them,
-    float32 or float16 (half the size; read back as float32); ``whiten``: fit a PCA-whitening on
-    every frame of the drive and store it with the map (:mod:`memlog.descriptors.whitening`);
+    float32 or float16 (half the size; read back as float32); ``whiten``: fit a PCA-whitening and
+    store it with the map (:mod:`memlog.descriptors.whitening`); ``whiten_on``: the frames it is
+    fitted on, ``"kept"`` (the map's own frames: only they are described, so the network runs on
+    the kept frames alone) or ``"drive"`` (every frame selection saw: each is described once more);
+    fewer than :data:`~memlog.descriptors.whitening.MIN_SAMPLES` leave the map unwhitened;
     ``whiten_dim``: its largest dimension (default: the documented rule); ``workers``: processes
     scoring frames; ``candidates``: with segment selection, score at most this many frames per
     segment with ResMem (the best by their cheap scores, spread over the segment; approximate;
@@ -106,6 +111,7 @@ class MapConfig:
     descriptors_path: str | None = None
     descriptor_dtype: Literal["float32", "float16"] = "float32"
     whiten: bool = True
+    whiten_on: Literal["kept", "drive"] = "kept"
     whiten_dim: int | None = None
     workers: int = 1
     candidates: int | Literal["all"] = DEFAULT_CANDIDATES
@@ -124,6 +130,8 @@ class MapConfig:
                                          or self.candidates < 1):
             raise ConfigError(f"candidates must be an integer >= 1 or 'all', got {self.candidates!r}")
         check_ints(self, {"workers": 1, "stride": 1, "whiten_dim": 1}, optional=True)
+        if self.whiten_on not in ("kept", "drive"):
+            raise ConfigError(f"whiten_on must be kept or drive, got {self.whiten_on!r}")
         if self.image_format not in ("jpeg", "png"):
             raise ConfigError(f"image_format must be jpeg or png, got {self.image_format!r}")
         q = self.jpeg_quality
@@ -399,10 +407,13 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
     resmem = _resmem_may_run(cfg)
     cheap: dict[str, list[CheapFrame]] = {t: [] for t in cams}
     total = reader.count_frames(window)
+    warm = _warm_detector(score_cfg) if not detect_first and isinstance(ex, InProcess) else None
     for cf in progress(cheap_frames(log, reader, score_cfg, window, ex, thumbs=sel_cfg.needs_descriptors,
                                     views=_needs_view(cfg), detect=detect_first, crops=resmem),
                        total=total, desc="cheap scores" if detect_first else "entropy", unit="frame"):
         cheap[cf.frame.topic].append(cf)
+    if warm is not None:
+        warm.result()  # (a model that cannot load says so here)
     seg_cfg = SegmentConfig(**sel_cfg.segment_settings())
     cut: dict[str, tuple[list[CheapFrame], ScoreTable, np.ndarray, np.ndarray | None]] = {}
     for t in cams:
@@ -468,6 +479,21 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
     if _needs_looks(cfg):
         looks = {t: {cf.frame.index: (cf.thumb, cf.view) for cf in cheap[t] if cf.error is None} for t in cams}
     return recs_by_topic, looks, (run, full)
+
+
+def _warm_detector(config: ScoreConfig) -> Future[None] | None:
+    """Load the detector of this process's scorer for ``config`` (and run its slower first forward)
+    on a thread while pass 1 computes entropy: the staged detection then starts at once. None when
+    the scorer's staticity stage has nothing to warm (a staticity given to the scorer)."""
+    scorer = map_scoring._scorer_for(config)  # (through the module: the one detection uses; tests replace it)
+    warm = getattr(scorer.staticity, "warm", None)
+    if warm is None:
+        return None
+    pool = ThreadPoolExecutor(1, thread_name_prefix="memlog-warm")
+    try:
+        return pool.submit(warm)
+    finally:
+        pool.shutdown(wait=False)
 
 
 def _detect_staged(log: str, score_cfg: ScoreConfig, window: FrameWindow, ex: Executor,
@@ -626,6 +652,7 @@ def make_map(
         describing = None
         if describer is not None:
             describing = ReferenceDescribing(describer, reader, fit_whitening=cfg.whiten and whitening is None,
+                                             fit_on=cfg.whiten_on,
                                              whiten_dim=cfg.whiten_dim, whitening=whitening, known=known,
                                              known_patches=known_patches)
         bytes_in = bytes_kept = 0
@@ -648,7 +675,7 @@ def make_map(
                 keep = item.index in kept[item.raw.channel.topic]
                 if describing is not None and (keep or (describing.wants_all_frames
                                                         and frame.index in score_recs[frame.topic])):
-                    describing.add(frame, keep)  # the whitening is fitted on every frame selection saw
+                    describing.add(frame, keep)  # with whiten_on "drive", every frame selection saw
                 if not keep:
                     continue
                 bytes_kept += len(item.raw.data)
@@ -664,9 +691,11 @@ def make_map(
                     result.whitening = {"sha256": white.sha256, "dim_in": white.dim_in, "dim_out": white.dim_out,
                                         "n_fit": white.n_fit, "eps": white.eps}
                 elif cfg.whiten:
-                    result.whitening = {"skipped": f"fewer than {MIN_SAMPLES} frames described; not whitened"}
+                    on = "kept frames" if cfg.whiten_on == "kept" else "frames of the drive"
+                    result.whitening = {"skipped": f"fewer than {MIN_SAMPLES} {on} described; not whitened"}
                     info(f"{reader.path}: the map is not whitened: whitening is fitted on at least "
-                         f"{MIN_SAMPLES} frames of the drive")
+                         f"{MIN_SAMPLES} {on}" + (" (--whiten-on drive fits it on every frame)"
+                                                  if cfg.whiten_on == "kept" else ""))
             table = None
             if described is not None and describer is not None and dpath is not None and choice is not None:
                 frames, desc, white = described
