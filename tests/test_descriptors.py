@@ -224,6 +224,16 @@ def test_dinov2_missing_model_names_prepare(tmp_path: Path, monkeypatch: pytest.
         make_describer("dinov2-cls")
 
 
+def test_dinov2_model_that_cannot_load_fails_at_its_first_use(tmp_path: Path) -> None:
+    """The session is built on a thread while the caller goes on (a missing model still fails at once,
+    above); a file that is not a model fails, with the command that remakes it, when first used."""
+    bad = tmp_path / "dinov2.onnx"
+    bad.write_bytes(b"not an onnx model")
+    d = make_describer("dinov2-cls", model_path=bad)
+    with pytest.raises(ModelError, match="could not load the DINOv2 model.*memlog models prepare --force"):
+        d.describe([np.zeros((64, 64, 3), np.uint8)])
+
+
 # ---------------------------------------------------------------- Parquet tables
 
 def _table(n: int = 4, dim: int = 6, **kw: Any) -> DescriptorTable:

@@ -49,8 +49,6 @@ __all__ = ["DinoV2Describer", "preprocess", "pool_tokens", "centre_crop", "POOLI
 
 POOLINGS = ("cls", "gem", "mean")
 
-#: Builds describers' ONNX Runtime sessions off the caller's thread (see ``DinoV2Describer.__init__``).
-_LOADER = ThreadPoolExecutor(max_workers=2, thread_name_prefix="memlog-model-load")
 
 F32 = npt.NDArray[np.float32]
 IMAGENET_MEAN = np.array(IMAGENET_MEAN_RGB, dtype=np.float32)
@@ -153,9 +151,14 @@ class DinoV2Describer(Describer):
         self.model_sha256 = SOURCE_SHA256
         # The model is checked now (a missing one fails here) and its session built on a thread, so
         # the caller's other work (a map's scoring pass) overlaps it; the first describe waits for it.
+        # (A pool of its own, not one made at import: a process forked from this one gets its own thread.)
         path = dinov2_file(self.model_path)
         self._sess: Any = None
-        self._loading = _LOADER.submit(make_session, path, threads=threads, device=device, what="the DINOv2 model")
+        pool = ThreadPoolExecutor(1, thread_name_prefix="memlog-model-load")
+        try:
+            self._loading = pool.submit(make_session, path, threads=threads, device=device, what="the DINOv2 model")
+        finally:
+            pool.shutdown(wait=False)
 
     @property
     def _session(self) -> Any:
@@ -223,8 +226,9 @@ class DinoV2Describer(Describer):
         return out, pooled
 
     def _run(self, names: list[str], x: F32) -> list[F32]:
+        session = self._session  # (a model that could not load: its ModelError, as is)
         try:
-            outs: list[F32] = self._session.run(names, {INPUT_NAME: x})
+            outs: list[F32] = session.run(names, {INPUT_NAME: x})
         except Exception as exc:
             raise DescriptorError(f"DINOv2 inference failed: {exc}") from None
         return outs
