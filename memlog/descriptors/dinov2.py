@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -43,12 +42,11 @@ from memlog.models.dinov2 import (
     dinov2_file,
     layer_output,
 )
-from memlog.models.runtime import make_session
+from memlog.models.runtime import make_session, on_thread
 
 __all__ = ["DinoV2Describer", "preprocess", "pool_tokens", "centre_crop", "POOLINGS"]
 
 POOLINGS = ("cls", "gem", "mean")
-
 
 F32 = npt.NDArray[np.float32]
 IMAGENET_MEAN = np.array(IMAGENET_MEAN_RGB, dtype=np.float32)
@@ -151,14 +149,9 @@ class DinoV2Describer(Describer):
         self.model_sha256 = SOURCE_SHA256
         # The model is checked now (a missing one fails here) and its session built on a thread, so
         # the caller's other work (a map's scoring pass) overlaps it; the first describe waits for it.
-        # (A pool of its own, not one made at import: a process forked from this one gets its own thread.)
         path = dinov2_file(self.model_path)
         self._sess: Any = None
-        pool = ThreadPoolExecutor(1, thread_name_prefix="memlog-model-load")
-        try:
-            self._loading = pool.submit(make_session, path, threads=threads, device=device, what="the DINOv2 model")
-        finally:
-            pool.shutdown(wait=False)
+        self._loading = on_thread(make_session, path, threads=threads, device=device, what="the DINOv2 model")
 
     @property
     def _session(self) -> Any:

@@ -11,8 +11,9 @@ really runs on (ONNX Runtime falls back to the CPU silently), and runs record it
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from memlog.errors import ModelError
 
@@ -23,9 +24,12 @@ __all__ = [
     "choose_providers",
     "make_session",
     "session_device",
+    "on_thread",
     "detector_backend",
     "GPU_INSTALL",
 ]
+
+R = TypeVar("R")
 
 DEVICES = ("auto", "cpu", "cuda")
 GPU_INSTALL = "pip install 'memlog[gpu]' (onnxruntime-gpu, with a CUDA driver)"
@@ -79,6 +83,17 @@ def make_session(path: Path | str, *, threads: int | None = None, device: str = 
         return ort.InferenceSession(str(path), opts, providers=providers)
     except Exception as exc:  # onnxruntime raises its own exception types
         raise ModelError(f"could not load {what} from {path} ({exc}); run `memlog models prepare --force`") from None
+
+
+def on_thread(fn: Callable[..., R], *args: Any, **kwargs: Any) -> Future[R]:
+    """``fn(*args, **kwargs)`` started on a thread of its own (model loading while the caller goes on);
+    the future's ``result()`` waits for it and raises what it raised. A pool per call, not one made at
+    import: a process forked after this call starts its own threads."""
+    pool = ThreadPoolExecutor(1, thread_name_prefix="memlog-load")
+    try:
+        return pool.submit(fn, *args, **kwargs)
+    finally:
+        pool.shutdown(wait=False)
 
 
 def session_device(session: Any) -> str:

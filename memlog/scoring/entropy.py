@@ -39,9 +39,10 @@ import importlib.machinery
 import logging
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import cv2
 import numpy as np
@@ -53,6 +54,7 @@ from memlog.errors import ScoringError
 __all__ = ["entropy_map", "entropy_score", "Entropy", "disk_footprint", "entropy_kernel", "KERNELS"]
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 #: The implementations of :func:`entropy_map` (``"auto"``: the compiled one when it is built).
 KERNELS = ("auto", "c", "numpy")
@@ -275,16 +277,8 @@ def entropy_map(gray: npt.NDArray[np.uint8], radius: int = 5, *, workers: int = 
 
     f, g = _tables(nfp)
 
-    nw = int(min(workers, max(1, hgt // 64)))
-    if nw == 1:
-        t = _band_sums(pt, hw, lpad, wk, k, 0, hgt, f, g)
-    else:
-        cuts = np.linspace(0, hgt, nw + 1).astype(int)
-        with ThreadPoolExecutor(nw) as ex:
-            parts = list(
-                ex.map(lambda a: _band_sums(pt, hw, lpad, wk, k, a[0], a[1], f, g), zip(cuts[:-1], cuts[1:]))
-            )
-        t = np.concatenate(parts, axis=2)
+    parts = _by_bands(hgt, workers, lambda i0, i1: _band_sums(pt, hw, lpad, wk, k, i0, i1, f, g))
+    t = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=2)
     # E = log2 n - T / n = (f(n) - T) / n: exactly 0 for a one-value histogram.
     # Interior: n = nfp neighbours, outside bin empty. t is (step, strip, row).
     out = np.empty((hgt, wid), np.float64)
@@ -327,15 +321,19 @@ def _entropy_map_c(gray: npt.NDArray[np.uint8], r: int, hw: list[int], nfp: int,
     hwa = np.asarray(hw, np.int64)
     f, g = _tables(nfp)
     out = np.empty((hgt, wid), np.float64)
-    nw = int(min(workers, max(1, hgt // 64)))
-    cuts = np.linspace(0, hgt, nw + 1).astype(int)
-    bands = [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:])]
-    if nw == 1:
-        _rows_c(pad, hgt, wid, r, hwa, f, g, 0, hgt, out)
-    else:
-        with ThreadPoolExecutor(nw) as ex:
-            list(ex.map(lambda ab: _rows_c(pad, hgt, wid, r, hwa, f, g, ab[0], ab[1], out[ab[0]: ab[1]]), bands))
+    _by_bands(hgt, workers, lambda i0, i1: _rows_c(pad, hgt, wid, r, hwa, f, g, i0, i1, out[i0:i1]))
     return out
+
+
+def _by_bands(hgt: int, workers: int, work: Callable[[int, int], T]) -> list[T]:
+    """``work(i0, i1)`` on bands of rows covering 0..hgt-1, in order: one band, or up to ``workers``
+    bands of at least 64 rows on as many threads (both kernels release the GIL in their loops)."""
+    nw = int(min(workers, max(1, hgt // 64)))
+    if nw == 1:
+        return [work(0, hgt)]
+    cuts = np.linspace(0, hgt, nw + 1).astype(int)
+    with ThreadPoolExecutor(nw) as ex:
+        return list(ex.map(lambda ab: work(int(ab[0]), int(ab[1])), zip(cuts[:-1], cuts[1:])))
 
 
 def _inside_factors(hgt: int, wid: int, hw: list[int]) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:

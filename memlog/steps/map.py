@@ -24,7 +24,7 @@ import json
 import os
 import time
 from collections.abc import Iterable, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -45,7 +45,7 @@ from memlog.io.identity import same_identity
 from memlog.io.open import open_log
 from memlog.io.positions import MotionTrack, PositionTrack, read_tracks
 from memlog.io.records import ReadReport
-from memlog.models.runtime import choose_providers
+from memlog.models.runtime import choose_providers, on_thread
 from memlog.outputs.annotated import read_scores, run_config, run_input_identity, scores_message
 from memlog.outputs.channels import family_of
 from memlog.outputs.map_artefact import write_map
@@ -487,13 +487,7 @@ def _warm_detector(config: ScoreConfig) -> Future[None] | None:
     the scorer's staticity stage has nothing to warm (a staticity given to the scorer)."""
     scorer = map_scoring._scorer_for(config)  # (through the module: the one detection uses; tests replace it)
     warm = getattr(scorer.staticity, "warm", None)
-    if warm is None:
-        return None
-    pool = ThreadPoolExecutor(1, thread_name_prefix="memlog-warm")
-    try:
-        return pool.submit(warm)
-    finally:
-        pool.shutdown(wait=False)
+    return None if warm is None else on_thread(warm)
 
 
 def _detect_staged(log: str, score_cfg: ScoreConfig, window: FrameWindow, ex: Executor,
