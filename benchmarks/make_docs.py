@@ -193,8 +193,15 @@ BENCHES: list[Bench] = [
           40, ("shared", "models"), defaults_anchor="the-drive-matcher-localize-evaluate"),
     Bench("rerank_table",
           ("python", "benchmarks/rerank_table.py", "--cache", "{work}/matcher-defaults"),
-          "patch re-ranking of the drive matcher's best places on Stromovka (full, half and quarter maps)",
+          "patch re-ranking and the drive HMM on the drive matcher's best places: Stromovka, frame-aligned and as drives "
+          "with stops (full, half and quarter maps), Nordland",
           15, ("shared", "models")),
+    Bench("drive_pair",
+          ("python", "benchmarks/drive_pair.py", "--cache", "{work}/drive-pair"),
+          "maps of every size through `memlog evaluate` (every row a map `memlog map` writes, matched as `memlog "
+          "localize` matches it), with and without the drive HMM: the Stromovka pair, the Stromovka drive pair with "
+          "stops, crawls and fast stretches, and Nordland",
+          20, ("shared", "models"), defaults_anchor="drives-as-cameras-record-them"),
     Bench("drive_maps",
           ("python", "benchmarks/drive_maps.py", "--scores", "{scores}", "--cache", "{work}/drive-maps"),
           "maps of Nordland drive variants that stop, crawl and speed up: memlog's map against every k-th frame and "
@@ -288,6 +295,7 @@ TITLES = {
     "evaluate_nordland": "`memlog evaluate`, Nordland 64x32",
     "matcher_defaults": "the drive matcher's defaults",
     "rerank_table": "patch re-ranking",
+    "drive_pair": "maps of every size on drives as cameras record them",
     "drive_maps": "maps of drives that stop, crawl and speed up",
     "selection_table": "selection modes against baselines",
     "shortlist_table": "`--candidates K` shortlists",

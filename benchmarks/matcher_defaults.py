@@ -7,7 +7,8 @@ Parquet, as localize reads them) and query descriptors made the way localize mak
 (``describer_for(map)``: the map's descriptor and whitening, patch features projected by the
 map's PCA). "default" re-ranks by patch features where the map stores them (DINOv2 maps).
 
-Data (``../shared/data``): Stromovka autumn map / winter query (1024x384, 101 places, DINOv2),
+Data (``../shared/data``): Stromovka autumn map / winter query (1024x384, 101 places, DINOv2), the
+same places as drives with stops, crawls and fast stretches (``stromovka-drive``),
 Nordland summer map / winter query (64x32, 800 places, thumbnails); maps of every frame
 (``--keep-fraction 1``) and memlog's half and quarter maps. With ``--variants``, the Nordland
 drive variants of ``benchmarks/drives.py`` (a query that stops, crawls and speeds up) against the
@@ -43,9 +44,11 @@ SETTINGS: dict[str, dict[str, Any]] = {
                                           "rerank": False},
     "speed 1:1, K 10": {"speeds": (1.0, 1.0), "rerank": False},
     "default, --no-rerank": {"rerank": False},
+    "default, --no-hmm": {"hmm": False},
     "default": {},
 }
 PAIRS = {"stromovka": ("stromovka_autumn.mcap", "stromovka_winter.mcap", "stromovka_truth.json"),
+         "stromovka-drive": ("stromovka_drive_autumn.mcap", "stromovka_drive_winter.mcap", "stromovka_drive_truth.json"),
          "nordland": ("nordland_dev_summer.mcap", "nordland_dev_winter.mcap", "nordland_dev_truth.json")}
 FRACTIONS = {"full": 1.0, "half": 0.5, "quarter": 0.25}
 

@@ -9,8 +9,9 @@ queries, cached in ``--cache``).
 
 Data (``../shared/data``): Stromovka autumn map / winter query (1024x384, DINOv2; maps of every
 frame, memlog's half and quarter maps — ``--keep-fraction 1 / 0.5 / 0.25``; memlog's default map
-of this drive is the quarter one) and Nordland summer / winter (64x32, thumbnails: no patch
-features, so no re-rank).
+of this drive is the quarter one), the same places as drives with stops, crawls and fast stretches
+(``stromovka-drive``: ``stromovka_drive_*``, the same maps) and Nordland summer / winter (64x32,
+thumbnails: no patch features, so no re-rank and no drive HMM).
 
     python benchmarks/rerank_table.py        # Markdown table
 
@@ -34,8 +35,9 @@ from benchmarks.matcher_defaults import FRACTIONS, PAIRS, SHARED, _map, _query, 
 ROWS = {"single frames": {"length": 0, "rerank": False},
         "single frames + re-rank": {"length": 0},
         "sequences": {"rerank": False},
-        "sequences + re-rank (default)": {}}
-MAPS = {"stromovka": list(FRACTIONS), "nordland": ["full"]}
+        "sequences + re-rank (--no-hmm)": {"hmm": False},
+        "sequences + re-rank + drive HMM (default)": {}}
+MAPS = {"stromovka": list(FRACTIONS), "stromovka-drive": list(FRACTIONS), "nordland": ["full"]}
 
 
 def main() -> int:
@@ -51,13 +53,15 @@ def main() -> int:
           "|---|---|---|---|---|---|---|---|---|")
     for pair in a.pairs:
         truth = [set(m) for m in json.loads((SHARED / PAIRS[pair][2]).read_text())["matches"]]
-        for which in (a.maps or MAPS[pair]) if pair == "stromovka" else MAPS[pair]:
+        for which in (a.maps or MAPS[pair]) if pair.startswith("stromovka") else MAPS[pair]:
             parquet = _map(a.cache, pair, which, a.map_args.split())
             ref, query = _query(a.cache, pair, parquet)
             per_frame = parquet.stat().st_size / max(1, len(ref))
             for name, settings in ROWS.items():
-                if "re-rank" in name and ref.patches is None:
-                    continue
+                if ref.patches is None and "re-rank" in name:
+                    if "default" not in name:
+                        continue
+                    name = "sequences (default; no patch features: no re-rank, no drive HMM)"
                 m = run(query, ref, truth, settings)
                 print(f"| {pair} | {which} ({len(ref)}) | {name} | {m['r1']:.3f} | {m['r5']:.3f} | {m['auc']:.3f} | "
                       f"{m['p50']:.2f} | {per_frame / 1024:.1f} KiB | {m['ms']:.1f} |", flush=True)

@@ -106,6 +106,7 @@ CONTRACT = {
     ('evaluate', ('--no-refine',), 'fast_refine', None, None, '_StoreFalseAction', 0, False, None, False),
     ('evaluate', ('--no-report',), 'no_report', False, None, '_StoreTrueAction', 0, True, None, False),
     ('evaluate', ('--no-rerank',), 'no_rerank', False, None, '_StoreTrueAction', 0, True, None, False),
+    ('evaluate', ('--no-hmm',), 'no_hmm', False, None, '_StoreTrueAction', 0, True, None, False),
     ('evaluate', ('--no-whiten',), 'no_whiten', False, None, '_StoreTrueAction', 0, True, None, False),
     ('evaluate', ('--whiten-on',), 'whiten_on', None, None, '_StoreAction', None, None, ('kept', 'drive'), False),
     ('evaluate', ('--normalize',), 'normalize', None, None, '_StoreAction', None, None, ('all', 'static'), False),
@@ -152,6 +153,7 @@ CONTRACT = {
     ('localize', ('--max-pixels',), 'max_pixels', None, 'positive_int', '_MaxPixels', None, None, None, False),
     ('localize', ('--nlist',), 'nlist', None, 'positive_int', '_StoreAction', None, None, None, False),
     ('localize', ('--no-rerank',), 'no_rerank', False, None, '_StoreTrueAction', 0, True, None, False),
+    ('localize', ('--no-hmm',), 'no_hmm', False, None, '_StoreTrueAction', 0, True, None, False),
     ('localize', ('--nprobe',), 'nprobe', None, 'positive_int', '_StoreAction', None, None, None, False),
     ('localize', ('--query-descriptors',), 'query_descriptors', None, None, '_StoreAction', None, None, None, False),
     ('localize', ('--search',), 'search', 'auto', None, '_StoreAction', None, None, ('auto', 'exact', 'ivf'), False),
@@ -379,7 +381,7 @@ def test_experimental_flags_are_marked_and_grouped(name: str) -> None:
     for a in p._actions:
         assert ("(experimental)" in (a.help or "")) == (_flag(a) in EXPERIMENTAL[name]), _flag(a)
     if name in ("localize", "evaluate"):
-        assert "--no-rerank" in shown["sequence matching"]
+        assert "--no-rerank" in shown["sequence matching"] and "--no-hmm" in shown["sequence matching"]
     if name == "evaluate":
         assert "--compare-exact" in shown["comparisons"]
 

@@ -68,14 +68,16 @@ def test_map_then_localize_runs_at_camera_resolution(stromovka: dict[str, Path])
     rows = pq.read_table(stromovka["matches"]).to_pydict()
     assert len(set(rows["query_id"])) == 101
     seq = json.loads(pq.read_table(stromovka["matches"]).schema.metadata[b"memlog.sequence"])
-    # the places were re-ranked by patch features (best first) and the confidence is the re-rank's margin
+    # the places were re-ranked by patch features, then the drive HMM ranked them by their probability
+    # along the drive (best first), the confidence its margin
     assert seq["rerank"]["by"] == "patches" and seq["rerank"]["patch_pca"] == m.patch_pca.sha256
+    assert seq["hmm"]["posterior"] == "forward-backward"
     by_query: dict[int, list[tuple[int, float]]] = {}
-    for q, k, s in zip(rows["query_id"], rows["rank"], rows["rerank_score"]):
+    for q, k, s in zip(rows["query_id"], rows["rank"], rows["place_probability"]):
         by_query.setdefault(q, []).append((k, s))
     for ranks in by_query.values():
-        scores = [s for _k, s in sorted(ranks)]
-        assert scores == sorted(scores, reverse=True)
+        probs = [s for _k, s in sorted(ranks)]
+        assert probs == sorted(probs, reverse=True) and 0 <= probs[-1] and sum(probs) <= 1 + 1e-9
     # truthful metadata: the window used, every query matched as a sequence, no fallback
     assert seq["sequence_queries"] == 101 and seq["single_queries"] == 0 and seq["fallback"] is None
     assert seq["length_used"] >= seq["length"] and set(rows["matched_by"]) == {"sequence"}

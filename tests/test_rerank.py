@@ -150,12 +150,18 @@ def test_rerank_off_or_impossible_leaves_the_descriptor_match_and_says_why() -> 
 
 def test_sequences_are_reranked_and_keep_their_rows() -> None:
     ref, query, _pca = _tables(seed=1)
-    res = match_tables(query, ref, SequenceConfig(length=3), k=5)
+    res = match_tables(query, ref, SequenceConfig(length=3, hmm=False), k=5)
     off = match_tables(query, ref, SequenceConfig(length=3, rerank=False), k=RERANK_PLACES)
-    assert res.rerank is not None and res.indices.shape == (len(query), 5)
+    assert res.rerank is not None and res.indices.shape == (len(query), 5) and res.posterior is None
+    assert "--no-hmm" in res.info["hmm"]["off"]
+    # the drive HMM (the default) orders the same re-ranked places by their probability along the drive
+    hmm = match_tables(query, ref, SequenceConfig(length=3), k=5)
+    assert hmm.posterior is not None and hmm.info["hmm"]["posterior"] == "forward-backward"
     for q in range(len(query)):
         assert set(res.indices[q].tolist()) <= set(off.indices[q].tolist())  # the same places, re-ordered
+        assert set(hmm.indices[q].tolist()) <= set(off.indices[q].tolist())
         assert np.all(np.diff(res.rerank[q]) <= 1e-12)  # best first
+        assert np.all(np.diff(hmm.posterior[q]) <= 1e-12) and 0 <= hmm.confidence[q] <= 1
     np.testing.assert_array_equal(res.sequence, off.sequence)
 
 

@@ -579,6 +579,10 @@ def add_sequence_flags(groups: FlagGroups) -> None:
     g.add_argument("--no-rerank", dest="no_rerank", action="store_true",
                    help="keep the order of the descriptor match (default: each query's best places are re-ranked by "
                         "the map's stored patch features, and the confidence is the re-rank's margin)")
+    g.add_argument("--no-hmm", dest="no_hmm", action="store_true",
+                   help="decide each query frame's place from its own re-ranked places alone (default: the drive's "
+                        "most likely path through every frame's re-ranked places decides, an HMM over each run; the "
+                        "confidence is the place's probability minus the best other place's)")
     g.add_argument("--coordinate", choices=["auto", "frames", "time", "positions"],
                    help="what sequences follow: frame indices, stamps, or distance along both logs' positions "
                         "(default auto: positions when both logs have them, else frames)")
@@ -610,6 +614,8 @@ def sequence_config(args: argparse.Namespace) -> Any:
 
     given = [flag for dest, flag in _SEQUENCE_FLAGS.items() if getattr(args, dest, None) not in (None, False)]
     kw: dict[str, Any] = {"rerank": False} if getattr(args, "no_rerank", False) else {}
+    if getattr(args, "no_hmm", False):
+        kw["hmm"] = False
     if args.sequence == 0 and given:
         raise ConfigError(f"{', '.join(given)} set(s) how sequences are matched, but --sequence 0 matches single "
                           "frames")
@@ -748,7 +754,7 @@ def evaluate_config(args: argparse.Namespace) -> Any:
         if select.mode != "segment":
             raise ConfigError(f"--candidates applies to segment selection only, not --select {select.mode}")
         flags["candidates"] = args.candidates
-    if any(getattr(args, d, None) not in (None, False) for d in ("sequence", "no_rerank", *_SEQUENCE_FLAGS)):
+    if any(getattr(args, d, None) not in (None, False) for d in ("sequence", "no_rerank", "no_hmm", *_SEQUENCE_FLAGS)):
         flags["sequence"] = sequence_config(args)
     if args.start is not None or args.end is not None or args.stride != 1:
         flags["window"] = frame_window(args, args.reference)

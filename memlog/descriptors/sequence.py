@@ -104,6 +104,7 @@ import numpy as np
 import numpy.typing as npt
 
 from memlog.configfile import check_ints
+from memlog.descriptors.drive_hmm import place_probabilities
 from memlog.descriptors.search import Database, _as_2d, _rescore, _row_norms, match
 from memlog.descriptors.table import POSITION_COLUMNS, DescriptorTable
 from memlog.errors import ConfigError, DescriptorError
@@ -180,7 +181,9 @@ class SequenceConfig:
     what was measured best): ``pairing`` (``mutual`` | ``all``), ``score_norm`` (``sqrt`` |
     ``mean``) and ``places`` (the best-voted places scored exactly). ``rerank``: re-rank each
     query's best places by patch features when both tables carry them under one PCA
-    (:func:`rerank_by_patches`; ``--no-rerank`` turns it off).
+    (:func:`rerank_by_patches`; ``--no-rerank`` turns it off). ``hmm``: after the re-rank, decide
+    each frame's place with its neighbours', as the drive's most likely path through every
+    frame's candidate places (:mod:`memlog.descriptors.drive_hmm`; ``--no-hmm`` turns it off).
     """
 
     length: int = 10
@@ -201,6 +204,7 @@ class SequenceConfig:
     score_norm: str = "sqrt"
     places: int = EXACT_PLACES
     rerank: bool = True
+    hmm: bool = True
 
     def __post_init__(self) -> None:
         check_ints(self, {"length": 0, "candidates": 1, "block": 1, "places": 1})
@@ -232,8 +236,8 @@ class SequenceConfig:
         if isinstance(self.exclude, bool) or not isinstance(self.exclude, (int, float)) or not (
                 math.isfinite(self.exclude) and self.exclude >= 0):
             raise ConfigError(f"exclude must be a number >= 0, got {self.exclude!r}")
-        if not all(isinstance(v, bool) for v in (self.scale_length, self.stops, self.rerank)):
-            raise ConfigError("scale_length, stops and rerank must be true or false")
+        if not all(isinstance(v, bool) for v in (self.scale_length, self.stops, self.rerank, self.hmm)):
+            raise ConfigError("scale_length, stops, rerank and hmm must be true or false")
         if self.length == 0 and self.causal:
             raise ConfigError("causal needs a sequence: length (--sequence) must be >= 1")
 
@@ -267,7 +271,9 @@ class SequenceMatch:
     similarity of the query frame itself to each matched frame. ``margin`` ``[Q]``: best minus
     second-best *place*'s score (NaN without a second), in the score's unit for every row: a
     single frame is a path of one pair, its score the contrast-normalised similarity ``z`` and its
-    second place the best candidate outside ``exclude`` of the best. ``ratio`` ``[Q]``: the query
+    second place the best candidate outside ``exclude`` of the best; after the re-rank, the best
+    place's patch score minus the other place's; after the drive HMM, the best place's probability
+    minus the other place's (``posterior`` ``[Q, k]``: each place's probability along the drive). ``ratio`` ``[Q]``: the query
     frame's descriptor distance to the best match over its distance to the second-best place
     (Lowe's ratio; lower is more distinct). ``speed`` ``[Q]``: relative speed of the best path
     (NaN for single frames). ``window`` ``[Q]``: frames the score was taken over (1 = single
@@ -288,6 +294,7 @@ class SequenceMatch:
     fallback: npt.NDArray[np.str_] = field(default_factory=lambda: np.zeros(0, dtype=str))
     info: dict[str, Any] = field(default_factory=dict)
     rerank: F64 | None = None
+    posterior: F64 | None = None
 
     @property
     def confidence(self) -> F64:
@@ -303,7 +310,15 @@ class SequenceMatch:
         r = np.asarray(rows, dtype=np.int64)
         return SequenceMatch(self.indices[r], self.scores[r], self.similarities[r], self.margin[r], self.speed[r],
                              self.window[r], self.sequence[r], self.ratio[r], self.fallback[r], self.info,
-                             None if self.rerank is None else self.rerank[r])
+                             None if self.rerank is None else self.rerank[r],
+                             None if self.posterior is None else self.posterior[r])
+
+    def top(self, k: int) -> SequenceMatch:
+        """The ``k`` best places of every row (the others dropped)."""
+        return replace(self, indices=self.indices[:, :k], scores=self.scores[:, :k],
+                       similarities=self.similarities[:, :k],
+                       rerank=None if self.rerank is None else self.rerank[:, :k],
+                       posterior=None if self.posterior is None else self.posterior[:, :k])
 
 
 # -- coordinates and runs of descriptor tables -------------------------------------------------------
@@ -1151,10 +1166,17 @@ def match_tables(
         map_rows = (np.flatnonzero(np.asarray(ref_mask, dtype=bool)) if ref_mask is not None
                     else np.arange(len(reference), dtype=np.int64))
         res = rerank_by_patches(res, query.descriptors[perm], reference.descriptors, query.patches[perm],
-                                reference.patches, qc[perm], rc, map_rows, labels[perm], cfg, k, unit)
+                                reference.patches, qc[perm], rc, map_rows, labels[perm], cfg, places, unit)
         res.info["rerank"] = {"by": "patches", "places": places, "patch_pca": reference.patch_pca.sha256}
+        if cfg.hmm and cfg.enabled:
+            res = _along_drive(res, query.descriptors[perm], reference.descriptors, qc[perm], rc, labels[perm],
+                               _median_step(np.sort(rc[map_rows])), unit, cfg)
+        else:
+            res.info["hmm"] = {"off": "turned off (--no-hmm)" if cfg.enabled else "single frames"}
+        res = res.top(k)
     else:
         res.info["rerank"] = {"off": why_not}
+        res.info["hmm"] = {"off": "no re-rank: the drive HMM decides between re-ranked places"}
     inv = np.empty_like(perm)
     inv[perm] = np.arange(len(perm))
     res = res.take(inv)
@@ -1232,19 +1254,55 @@ def rerank_by_patches(res: SequenceMatch, q_desc: F32, r_desc: F32, q_patches: n
         total[use] = pair_scores(q_patches, r_patches, uk // n_ref, uk % n_ref)[inv]
         count = use.sum(axis=2)
         patch[rows] = np.where(c >= 0, total.sum(axis=2) / np.maximum(count, 1), np.nan)
-    order = np.argsort(np.where(cand >= 0, -np.nan_to_num(patch, nan=0.0), np.inf), axis=1, kind="stable")
-    idx = np.take_along_axis(cand, order, axis=1)
-    ps = np.take_along_axis(patch, order, axis=1)
-    excl = cfg.exclude * unit
+    res = replace(res, rerank=patch, info={**res.info, "patch_rerank": n_c})  # the places re-ranked
+    return _ranked_by(res, np.where(cand >= 0, np.nan_to_num(patch, nan=0.0), -np.inf), q_desc, r_desc, rc,
+                      cfg.exclude * unit, nan_without_second=True).top(min(k, n_c))
+
+
+def _ranked_by(res: SequenceMatch, key: F64, q_desc: F32, r_desc: F32, rc: F64, excl: float,
+               nan_without_second: bool = False) -> SequenceMatch:
+    """``res`` with each row's places ordered by ``key`` ``[Q, K]`` (highest first, ties in their
+    order; -inf: no place), the margin the best key minus the best of another place (outside
+    ``excl`` coordinate units; NaN, or the best key alone with ``nan_without_second`` false, when
+    there is none) and Lowe's ratio taken to that place."""
+    n_q = res.indices.shape[0]
+    order = np.argsort(-key, axis=1, kind="stable")
+    idx = np.take_along_axis(res.indices, order, axis=1)
+    ks = np.take_along_axis(key, order, axis=1)
     other = (idx[:, 1:] >= 0) & (np.abs(rc[np.maximum(idx[:, 1:], 0)] - rc[np.maximum(idx[:, :1], 0)]) > excl)
     has = other.any(axis=1)
-    second_col = np.where(has, np.argmax(other, axis=1) + 1, 0)
+    col = np.where(has, np.argmax(other, axis=1) + 1, 0)
     rows_q = np.arange(n_q)
-    margin = np.where(has & (idx[:, 0] >= 0), ps[:, 0] - ps[rows_q, second_col], np.nan)
-    second = np.where(has, idx[rows_q, second_col], -1)
+    alone = np.full(n_q, np.nan) if nan_without_second else np.zeros(n_q)
+    margin = np.where(idx[:, 0] >= 0, np.where(has, ks[:, 0] - ks[rows_q, col], alone + ks[:, 0]), np.nan)
+    second = np.where(has, idx[rows_q, col], -1)
     ratio = _ratio(q_desc, Database.of(r_desc), idx[:, 0], second, np.arange(len(r_desc), dtype=np.int64))
-    kk = min(k, n_c)
-    info = {**res.info, "patch_rerank": n_c}  # the places re-ranked
-    return SequenceMatch(idx[:, :kk], np.take_along_axis(res.scores, order, axis=1)[:, :kk],
-                         np.take_along_axis(res.similarities, order, axis=1)[:, :kk], margin, res.speed, res.window,
-                         res.sequence, ratio, res.fallback, info, ps[:, :kk])
+
+    def by(a: F64 | None) -> F64 | None:
+        return None if a is None else np.take_along_axis(a, order, axis=1)
+
+    return replace(res, indices=idx, scores=np.take_along_axis(res.scores, order, axis=1),
+                   similarities=np.take_along_axis(res.similarities, order, axis=1), margin=margin, ratio=ratio,
+                   rerank=by(res.rerank), posterior=by(res.posterior))
+
+
+def _along_drive(res: SequenceMatch, q_desc: F32, r_desc: F32, qc: F64, rc: F64, labels: I64, spacing: float,
+                 unit: float, cfg: SequenceConfig) -> SequenceMatch:
+    """``res`` (query rows in drive order, each with its re-ranked places) with every row's places
+    ranked by their probability along the drive (:mod:`memlog.descriptors.drive_hmm`): the margin
+    becomes the best place's probability minus the best other place's; a standing row takes its
+    stop's first row's places."""
+    assert res.rerank is not None
+    score = np.where(res.indices >= 0, np.nan_to_num(res.rerank, nan=0.0), -np.inf)
+    x = np.where(res.indices >= 0, rc[np.maximum(res.indices, 0)], 0.0)
+    speeds = res.info.get("speeds")
+    pace = float(res.info.get("pace") or 1.0)
+    lo, hi = _run_bounds(labels, qc)
+    post, owner = place_probabilities(score, x, qc, lo, hi, pace=pace, spacing=spacing,
+                                      vmax=float(speeds[1]) if speeds else 3.0 * pace, causal=cfg.causal)
+    res = res.take(owner)
+    res.posterior = post[owner]
+    res.info = {**res.info, "hmm": {"posterior": "filtered" if cfg.causal else "forward-backward",
+                                    "standing_rows": int((owner != np.arange(len(owner))).sum())}}
+    return _ranked_by(res, np.where(res.indices >= 0, res.posterior, -np.inf), q_desc, r_desc, rc,
+                      cfg.exclude * unit)

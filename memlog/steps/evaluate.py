@@ -67,7 +67,8 @@ from memlog.scoring.config import ScoreConfig
 from memlog.selection import ScoreTable, distance_uniform_mask, random_masks, uniform_mask
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.selection.paper import first_failing
-from memlog.steps.map import MapConfig, make_map, score_table, staged_scores, staged_stageable
+from memlog.steps.map import (Looks, MapConfig, MapResult, make_map, score_table, staged_scores_and_looks,
+                              staged_stageable)
 from memlog.steps.score import score
 
 __all__ = ["evaluate", "EvaluateConfig", "EvaluateResult", "SWEEP_STEPS"]
@@ -192,7 +193,7 @@ class _Matching:
             self.info.update({"sequence": self.seq.to_dict(),
                               **{k: sm.info.get(k) for k in ("coordinate", "coordinate_note", "max_gap_s", "stops",
                                                              "standing_rows", "length_used", "map_runs",
-                                                             "rerank")}})
+                                                             "rerank", "hmm")}})
         if "fallback" not in self.info and sm.info.get("fallback"):
             self.info["fallback"] = sm.info["fallback"]
             self.info["fallback_reasons"] = sm.info.get("fallback_reasons")
@@ -245,6 +246,76 @@ class _Matching:
         if seq and sequence is None:
             out["single_frame"] = self.evaluate(truth, mask, sequence=False, map_table=map_table)[0]
         return out, mo, po
+
+
+class _MapWriter:
+    """The maps of one evaluation, each written by the map step's writer (:func:`make_map`) from
+    the reference log with the scores and the raw descriptors and patches ``evaluate`` already has
+    (nothing is scored or described again), read back from its Parquet and matched in its own
+    descriptor space. ``OUT/map.mcap`` is the memorable map; the others are ``OUT/maps/NAME.mcap``
+    (``temporary`` ones, the random maps, are removed by :meth:`clean` once measured)."""
+
+    def __init__(self, reference: str, out: Path, kind: str | None, topic: str, ref_t: DescriptorTable,
+                 scores: dict[str, list[dict[str, Any]]], looks: Looks | None, config: MapConfig,
+                 map_score: ScoreConfig, window: FrameWindow) -> None:
+        self.reference, self.out, self.kind, self.topic, self.ref_t = reference, out, kind, topic, ref_t
+        self.scores, self.looks, self.config = scores, looks, config
+        self.map_score, self.window = map_score, window
+        self.known = {(topic, int(i)): ref_t.descriptors[r] for r, i in enumerate(ref_t.frame_index)}
+        self.known_patches = None if ref_t.patches is None else {
+            (topic, int(i)): ref_t.patches[r] for r, i in enumerate(ref_t.frame_index)}
+        self._temporary: list[Path] = []
+        self._tables: dict[Path, DescriptorTable | None] = {}
+
+    def path(self, name: str) -> Path:
+        suffix = f".{self.kind}" if self.kind else ""
+        if name == "memorable":
+            return self.out / f"map{suffix}.mcap"
+        return self.out / "maps" / f"{name}{suffix}.mcap"
+
+    def write(self, name: str, *, select: SelectionConfig | None = None, keep: np.ndarray | None = None,
+              temporary: bool = False) -> MapResult:
+        """Write map ``name``: the selection's frames (``select``: other selection settings, scored
+        by the map step itself, as ``memlog map`` with those settings scores the drive: the staged
+        scores of one selection do not serve another), or the reference rows ``keep`` (a mask over
+        the described frames)."""
+        path = self.path(name)
+        path.parent.mkdir(exist_ok=True)
+        # another selection: its own scoring, with the scoring settings `memlog map` would use
+        cfg = self.config if select is None else replace(self.config, select=select, score=self.map_score)
+        given = None if keep is None else {self.topic: [int(i) for i in self.ref_t.frame_index[keep]]}
+        res = make_map(self.reference, path, cfg, scores=self.scores if select is None else None,
+                       known_descriptors=self.known,
+                       known_patches=self.known_patches, keep_frames=given, known_looks=self.looks, window=self.window)
+        if temporary:
+            self._temporary += [path] + ([res.descriptors] if res.descriptors is not None else [])
+        return res
+
+    def table(self, res: MapResult) -> DescriptorTable | None:
+        """The map's descriptor table as read back from its Parquet (None without descriptors)."""
+        if res.output not in self._tables:
+            self._tables[res.output] = read_descriptors(res.descriptors) if res.descriptors is not None else None
+        return self._tables[res.output]
+
+    def evaluate(self, res: MapResult, q_t: DescriptorTable, truth: list[set[int]], cfg: EvaluateConfig
+                 ) -> tuple[dict[str, Any], tuple[ProtocolResult, ProtocolResult]]:
+        """Both protocols for the written map ``res``, the query in the map's own space."""
+        t = self.table(res)
+        white = t.whitening if (cfg.whiten and t is not None) else None
+        pca = t.patch_pca if t is not None else None
+        kept = t.frame_index if t is not None else np.array(
+            sorted(int(i) for s in res.selections.values() for i in s.kept_indices), dtype=np.int64)
+        matching = _Matching(_whitened(q_t, white, pca), _whitened(self.ref_t, white, pca), cfg)
+        r, mo, po = matching.evaluate(truth, np.isin(self.ref_t.frame_index, kept), map_table=t)
+        r["whitening"] = res.whitening
+        return r, (mo, po)
+
+    def clean(self) -> None:
+        """Remove the temporary maps."""
+        for p in self._temporary:
+            self._tables.pop(p, None)
+            Path(p).unlink(missing_ok=True)
+        self._temporary.clear()
 
 
 def _rows_for(table: DescriptorTable, n_frames: int) -> np.ndarray:
@@ -387,10 +458,11 @@ def evaluate(
     # every MS), or settings the staged selection does not serve, every score of every frame
     # (OUT/reference.scored.mcap, reused when it matches).
     reports: list[ReadReport] = []
+    looks = None  # the frames' thumbnails and view vectors, from the one pass that decodes them
     staged_cfg = MapConfig(score=cfg.score, select=cfg.select, topics=(ref_topic,), descriptor=None,
                            candidates=cfg.candidates)
     if not cfg.compare_exact and staged_stageable(staged_cfg):
-        staged_recs, staged_report = staged_scores(reference, staged_cfg, ref_window)
+        staged_recs, looks, staged_report = staged_scores_and_looks(reference, staged_cfg, ref_window)
         reports.append(staged_report)
         recs = staged_recs.get(ref_topic, [])
     else:
@@ -431,59 +503,69 @@ def evaluate(
         if not any(truth_rows):
             raise EvaluationError("no query frame in the window has a true match among the reference frames in it")
 
-        # 4. the memorable map, selected once: the metrics describe exactly the map written
+        # 4. every map of the comparison written by the map step's writer (`make_map`), each with its own
+        # whitening and patch PCA fitted on its own kept frames as `memlog map` fits them, read back
+        # from its Parquet and matched as `memlog localize` matches it: the memorable map (exactly the
+        # frames `memlog map` keeps), the full map (`memlog map --keep-fraction 1`), and the baselines of
+        # the memorable map's size (every k-th frame, random frames) as maps of those frames
         in_window = {ref_topic: [score_by_frame[ref_topic][int(i)] for i in ref_t.frame_index
                                  if int(i) in score_by_frame[ref_topic]]}
-        map_path = out / ("map.mcap" if len(kinds) == 1 else f"map.{kind}.mcap")
-        map_res = make_map(reference, map_path,
-                           MapConfig(score=score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=kind,
-                                     whiten=cfg.whiten, whiten_on=cfg.whiten_on, candidates=cfg.candidates),
-                           scores=in_window,
-                           known_descriptors={(ref_topic, int(i)): ref_t.descriptors[r]
-                                              for r, i in enumerate(ref_t.frame_index)},
-                           known_patches=None if ref_t.patches is None else {
-                               (ref_topic, int(i)): ref_t.patches[r] for r, i in enumerate(ref_t.frame_index)})
+        maps = _MapWriter(reference, out, kind if len(kinds) > 1 else None, ref_topic, ref_t, in_window, looks,
+                          MapConfig(score=score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=kind,
+                                    whiten=cfg.whiten, whiten_on=cfg.whiten_on, candidates=cfg.candidates),
+                          cfg.score, ref_window)
+        map_res = maps.write("memorable")
+        looks = maps.looks = looks or map_res.looks
         sel = map_res.selections[ref_topic]
         mask = np.isin(ref_t.frame_index, sel.kept_indices)
         table = score_table(in_window[ref_topic], ref_topic)
-        map_table = read_descriptors(map_res.descriptors) if map_res.descriptors is not None else None
+        map_table = maps.table(map_res)
         whitening = map_table.whitening if (cfg.whiten and map_table is not None) else None
         patch_pca = map_table.patch_pca if map_table is not None else None
 
-        # 5. variants under both protocols, matched as the localize step does (and frame by frame):
-        # the memorable map as its Parquet was written, the others as masks of the reference drive
-        # in the same descriptor space (the query whitened with the map's transform, as localize does)
+        # 5. each map under both protocols, in its own descriptor space (the query whitened and its
+        # patches projected by that map's transforms, as localize does); frame by frame too
         matching = _Matching(_whitened(q_t, whitening, patch_pca), _whitened(ref_t, whitening, patch_pca), cfg)
         res: dict[str, Any] = {"descriptor": choice.to_dict(), "describer": describer.meta().to_dict(),
                                "whitening": map_res.whitening, "matching": matching.info}
         per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
         kk = int(mask.sum())
-        variants = {"full": np.ones(len(ref_t), bool), "memorable": mask, "uniform": uniform_mask(len(ref_t), kk)}
+        given: dict[str, np.ndarray] = {"uniform": uniform_mask(len(ref_t), kk)}
         exact = None
         if (cfg.compare_exact and cfg.select.mode == "segment" and cfg.candidates != "all"
                 and map_res.tables.get(ref_topic) is not None):
             exact = cfg.select.run(map_res.tables[ref_topic], ms_bound="one" if score_cfg.normalize == "static" else "ss")
-            variants["memorable_exact"] = np.isin(ref_t.frame_index, exact.kept_indices)
+            given["memorable_exact"] = np.isin(ref_t.frame_index, exact.kept_indices)
         if "x" in ref_t.positions or "lat" in ref_t.positions:
             pos = _local_positions(ref_t)
             by_distance = distance_uniform_mask(pos, kk) if pos is not None else None
             if by_distance is not None:
-                variants["uniform_distance"] = by_distance
-        for name, m in variants.items():
-            r, mo, po = matching.evaluate(truth_rows, m, map_table=map_table if name == "memorable" else None)
-            res[name] = r
-            per_variant[name] = (mo, po)
+                given["uniform_distance"] = by_distance
+        r, mo, po = matching.evaluate(truth_rows, mask, map_table=map_table)
+        res["memorable"], per_variant["memorable"] = r, (mo, po)
+        full_res = maps.write("full", select=replace(cfg.select, keep_fraction=1.0))
+        res["full"], per_variant["full"] = maps.evaluate(full_res, q_t, truth_rows, cfg)
+        res["full"]["map"] = str(full_res.output)
+        for name, m in given.items():
+            res[name], per_variant[name] = maps.evaluate(maps.write(name, keep=m), q_t, truth_rows, cfg)
+            res[name]["map"] = str(maps.path(name))
         if whitening is not None:
             raw = _Matching(q_t.projected(patch_pca), ref_t.projected(patch_pca), cfg)
-            res["full_unwhitened"] = raw.evaluate(truth_rows, variants["full"])[0]
+            full_table = maps.table(full_res)
+            assert full_table is not None  # (evaluate always describes)
+            full_mask = np.isin(ref_t.frame_index, full_table.frame_index)
+            res["full_unwhitened"] = raw.evaluate(truth_rows, full_mask)[0]
         res["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
                                  "select": cfg.select.mode, "candidates": cfg.candidates,
                                  "keep_fraction": cfg.select.keep_fraction, "gaps": len(sel.gaps),
                                  "segments": sel.info.get("by"), "still_frames": sel.info.get("still_frames")})
         if exact is not None:
             res["memorable_exact"]["kept_indices"] = exact.kept_indices.tolist()
-        res["uniform"]["note"] = "every k-th frame: evenly spaced frame indices, as many as the memorable map"
-        rand = [matching.evaluate(truth_rows, m)[0] for m in random_masks(len(ref_t), kk, range(cfg.seeds))]
+        res["uniform"]["note"] = ("every k-th frame: evenly spaced frame indices, as many as the memorable map, "
+                                  "written as a map of those frames")
+        rand = [maps.evaluate(maps.write(f"random-{seed}", keep=m, temporary=True), q_t, truth_rows, cfg)[0]
+                for seed, m in zip(range(cfg.seeds), random_masks(len(ref_t), kk, range(cfg.seeds)))]
+        maps.clean()
         res["random"] = _mean_std(rand)
         by_kind[kind] = res
         if main is None:

@@ -196,7 +196,8 @@ def localize(
                        "sequence_window": res.window},
         ref_columns={"ref_topic": np.array(ref.topic), "ref_log_time_ns": ref.log_time_ns},
         rank_columns={"sequence_score": seq_scores,
-                      **({} if res.rerank is None else {"rerank_score": res.rerank})},
+                      **({} if res.rerank is None else {"rerank_score": res.rerank}),
+                      **({} if res.posterior is None else {"place_probability": res.posterior})},
         metadata={"map": str(Path(map_descriptors).resolve()), "query_log": str(Path(query_log).resolve()),
                   "descriptor": ref.meta.to_dict(), "k": cfg.k, "window": qt.extra.get("window"),
                   "search": search, "sequence": sequence},
@@ -246,7 +247,7 @@ def _sequence_record(found: dict[str, Any], cfg: SequenceConfig) -> dict[str, An
     (coordinate, speeds searched, the reference's frame spacing) and the fallback, if any."""
     keys = ("coordinate", "coordinate_note", "length_used", "speeds", "speed_step", "n_speeds", "speed_prior", "unit",
             "runs", "max_gap_s", "sequence_queries", "single_queries", "fallback", "fallback_reasons", "stops",
-            "standing_rows", "rerank")
+            "standing_rows", "rerank", "hmm")
     out = {"asked": cfg.to_dict(), "length": cfg.length, "mode": "causal" if cfg.causal else "offline",
            "candidates": cfg.candidates, "path": cfg.path, **{k: found.get(k) for k in keys}}
     if not cfg.enabled:

@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -64,7 +64,7 @@ from memlog.steps.map_scoring import (CheapFrame, Detected, DetectJob, DetectRul
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
 from memlog.steps.score import scored_frames
 
-__all__ = ["make_map", "MapConfig", "MapResult", "score_table", "EmptyMapError", "collect_scores", "staged_scores",
+__all__ = ["make_map", "MapConfig", "MapResult", "score_table", "EmptyMapError", "collect_scores", "staged_scores", "staged_scores_and_looks",
            "staged_stageable"]
 
 Records = dict[str, list[dict[str, Any]]]
@@ -167,6 +167,7 @@ class MapResult:
     descriptor: DescriptorChoice | None = None
     whitening: dict[str, Any] | None = None
     tables: dict[str, ScoreTable] = field(default_factory=dict)  # what each topic was selected from
+    looks: Looks | None = field(default=None, repr=False)  # the frames' looks selection used (make_map's known_looks)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -271,6 +272,14 @@ def _scores_from(scores: str | os.PathLike[str] | Records, cfg: MapConfig, log: 
     return recs
 
 
+def _window(cams: list[str], cfg: MapConfig, window: FrameWindow | None) -> FrameWindow:
+    """The frames to score: ``window``'s times and stride on the camera topics ``cams`` (default:
+    every frame at ``cfg.stride``)."""
+    if window is None:
+        return FrameWindow(tuple(cams), stride=cfg.stride)
+    return FrameWindow(tuple(cams), window.start_ns, window.end_ns, window.stride)
+
+
 def _stageable(cfg: MapConfig) -> bool:
     """Whether the staged selection applies: segments chosen by the geometric score, and the
     user did not ask for every score (``--all-scores``) or the literal pipeline, and distinctiveness
@@ -354,23 +363,30 @@ Crops = tuple[int | None, int | None]
 
 
 def _full(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track: PositionTrack | None,
-          ex: Executor, scores: str | os.PathLike[str] | Records | None) -> tuple[Records, Looks | None, Crops]:
+          ex: Executor, scores: str | os.PathLike[str] | Records | None,
+          known_looks: Looks | None = None, window: FrameWindow | None = None) -> tuple[Records, Looks | None, Crops]:
     """Every score of every frame (or a reused scoring run), and the frames' looks when selection
-    needs them (one more pass over the frames)."""
+    needs them (one more pass over the frames, unless ``known_looks`` has every frame's)."""
     sel_cfg = cfg.select
     crops: Crops = (None, None)
     if scores is None:
         score_cfg = cfg.score.replace(all_scores=True) if sel_cfg.needs_all_scores else cfg.score
-        recs_by_topic = collect_scores(log, reader, score_cfg, FrameWindow(tuple(cams), stride=cfg.stride), ex)
+        recs_by_topic = collect_scores(log, reader, score_cfg, _window(cams, cfg, window), ex)
         n = sum(int(r.get("crops_scored") or 0) for recs in recs_by_topic.values() for r in recs)
         crops = (n, n if score_cfg.all_scores else None)
     else:
         recs_by_topic = _scores_from(scores, cfg, log)
     looks: Looks | None = None
     if _needs_looks(cfg):
-        looks = {t: frame_looks(reader, t, {r["frame_index"] for r in recs_by_topic.get(t, [])
-                                           if r.get("rejected_by") != "undecodable"},
-                                sel_cfg.needs_descriptors, _needs_view(cfg)) for t in cams}
+        looks = {}
+        for t in cams:
+            need = {r["frame_index"] for r in recs_by_topic.get(t, []) if r.get("rejected_by") != "undecodable"}
+            have = (known_looks or {}).get(t, {})
+            if need <= have.keys() and all((v[0] is not None or not sel_cfg.needs_descriptors)
+                                           and (v[1] is not None or not _needs_view(cfg)) for v in have.values()):
+                looks[t] = {i: have[i] for i in need}
+            else:
+                looks[t] = frame_looks(reader, t, need, sel_cfg.needs_descriptors, _needs_view(cfg))
     return recs_by_topic, looks, crops
 
 
@@ -397,7 +413,7 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
     change which frame a segment keeps."""
     sel_cfg = cfg.select
     score_cfg = cfg.score.replace(all_scores=True)  # every score of the frames that are scored
-    window = window or FrameWindow(tuple(cams), stride=cfg.stride)
+    window = _window(cams, cfg, window)
     shortlist = _shortlist(cfg)
     mode: StaticityMode = "every"
     if stage_staticity:
@@ -536,30 +552,39 @@ def staged_stageable(cfg: MapConfig) -> bool:
     return _stageable(cfg)
 
 
-def staged_scores(log: str | os.PathLike[str], config: MapConfig, window: FrameWindow | None = None,
-                  executor: Executor | None = None, *, stage_staticity: bool = True) -> tuple[Records, ReadReport]:
+def staged_scores_and_looks(log: str | os.PathLike[str], config: MapConfig, window: FrameWindow | None = None,
+                  executor: Executor | None = None, *, stage_staticity: bool = True
+                  ) -> tuple[Records, Looks | None, ReadReport]:
     """The score records of ``log`` (per camera topic, as ``T/memlog/scores``) that ``memlog map``
     with ``config`` computes by the staged selection (``staged_stageable(config)`` must hold):
     the detector and ResMem only where they can change the map, ``ss``/``es``/``ms`` null where
     they did not run. ``window``: the frames to score (default: ``config``'s topics and stride).
     Selecting from these records keeps the frames the map keeps (``stage_staticity=False``: the
-    detector on every frame, as :func:`make_map` has it)."""
+    detector on every frame, as :func:`make_map` has it). Also the frames' looks (thumbnail and view
+    vector, where selection needs them), which :func:`make_map` takes as ``known_looks`` instead of
+    decoding every frame again."""
     cfg = config
     if not _stageable(cfg):
         raise ConfigError("staged_scores: these settings do not select by the staged segment selection")
     with open_log(log) as reader:
         cams = reader.check_camera_topics(window.topics if window is not None and window.topics else cfg.topics)
         track, motion = read_tracks(reader, cfg.position_topic)
-        w = window if window is not None else FrameWindow(tuple(cams), stride=cfg.stride)
-        w = FrameWindow(tuple(cams), w.start_ns, w.end_ns, w.stride)
+        w = _window(cams, cfg, window)
         ex = executor or make_executor(cfg.workers)
         try:
-            recs, _looks, _crops = _staged(str(log), reader, cfg, cams, track, ex, motion, window=w,
-                                           stage_staticity=stage_staticity)
+            recs, looks, _crops = _staged(str(log), reader, cfg, cams, track, ex, motion, window=w,
+                                          stage_staticity=stage_staticity)
         finally:
             if executor is None:
                 ex.close()
-        return recs, reader.report
+        return recs, looks, reader.report
+
+
+def staged_scores(log: str | os.PathLike[str], config: MapConfig, window: FrameWindow | None = None,
+                  executor: Executor | None = None, *, stage_staticity: bool = True) -> tuple[Records, ReadReport]:
+    """The score records :func:`staged_scores_and_looks` gives, and the log's read report."""
+    recs, _looks, report = staged_scores_and_looks(log, config, window, executor, stage_staticity=stage_staticity)
+    return recs, report
 
 
 def _positions(track: PositionTrack | None, frames: list[CheapFrame]) -> np.ndarray | None:
@@ -579,6 +604,9 @@ def make_map(
     known_descriptors: dict[tuple[str, int], np.ndarray] | None = None,
     known_patches: dict[tuple[str, int], np.ndarray] | None = None,
     stage_staticity: bool = True,
+    keep_frames: Mapping[str, Collection[int]] | None = None,
+    known_looks: Looks | None = None,
+    window: FrameWindow | None = None,
 ) -> MapResult:
     """Build the memorable-map log of ``log`` (see module doc). ``scores``: an annotated MCAP of
     ``memlog score`` (or its records) to reuse instead of scoring; ``executor``: where scoring jobs
@@ -586,8 +614,14 @@ def make_map(
     the configured kind by ``(topic, frame index)``, used instead of describing those frames again
     (``evaluate`` has them; ``known_patches``: their raw pooled patch features, the same way).
     ``stage_staticity=False``: the staged selection runs the detector on every frame (the unstaged
-    path; it keeps the same frames, and is kept for comparison). Raises :class:`EmptyMapError`
-    when nothing would be kept."""
+    path; it keeps the same frames, and is kept for comparison). ``keep_frames``: the frames to keep, by
+    topic, instead of the selection's (``evaluate``'s baselines: every k-th and random frames written
+    as maps by this same writer; the selection still runs, for the records, and the map's metadata
+    says the frames were given). ``known_looks``: the frames' looks from an earlier pass
+    (:func:`staged_scores_and_looks`, or :attr:`MapResult.looks`), used with ``scores`` instead of
+    decoding every frame again. ``window``: score and select only these frames (times and stride;
+    ``evaluate``'s quick trials), instead of every frame at ``config.stride``. Raises
+    :class:`EmptyMapError` when nothing would be kept."""
     t0 = time.perf_counter()
     cfg = config or MapConfig()
     sel_cfg = cfg.select
@@ -615,9 +649,9 @@ def make_map(
         try:
             if scores is None and _stageable(cfg):
                 recs_by_topic, looks, crops = _staged(str(log), reader, cfg, cams, track, ex, motion,
-                                                      stage_staticity=stage_staticity)
+                                                      window=window, stage_staticity=stage_staticity)
             else:
-                recs_by_topic, looks, crops = _full(str(log), reader, cfg, cams, track, ex, scores)
+                recs_by_topic, looks, crops = _full(str(log), reader, cfg, cams, track, ex, scores, known_looks, window)
         finally:
             if executor is None:
                 ex.close()
@@ -633,6 +667,9 @@ def make_map(
         selections = _selections(reader, cfg, cams, recs_by_topic, track, looks,
                                  ds_by_topic if sel_cfg.needs_distinctiveness else None, tables, motion)
         kept = {t: {int(i) for i in s.index[s.keep]} for t, s in selections.items()}
+        if keep_frames is not None:  # given frames (of those the selection saw: the ones that decoded)
+            kept = {t: {int(i) for i in s.index} & {int(i) for i in keep_frames.get(t, ())}
+                    for t, s in selections.items()}
         n_in = sum(len(s.index) for s in selections.values())
         n_kept = sum(len(k) for k in kept.values())
         thresholds = next((s.thresholds for s in selections.values() if s.thresholds), {})
@@ -676,7 +713,7 @@ def make_map(
                 w.write_frame(frame, item.raw, score_recs[frame.topic].get(frame.index))
             result = MapResult(Path(output), None, selections, n_in, n_kept, bytes_in, 0, dict(thresholds),
                                report=reader.report, crops_run=crops[0], crops_full=crops[1], descriptor=choice,
-                               tables=tables)
+                               tables=tables, looks=looks)
             described = None
             if describing is not None:
                 described = describing.result(source=f"{reader.path} ({', '.join(cams)})")
@@ -711,6 +748,7 @@ def make_map(
                 "frames_in": str(n_in), "frames_kept": str(n_kept), "camera_bytes_in": str(bytes_in),
                 "camera_bytes_kept_before_reencoding": str(bytes_kept),
                 "selection": json.dumps({t: s.to_dict() for t, s in selections.items()}),
+                "kept_by": "given" if keep_frames is not None else "selection",
                 "resmem_crops_run": json.dumps(crops[0]), "resmem_crops_full_scoring": json.dumps(crops[1]),
             }, dpath if dpath is not None else cfg.descriptors_path, table, dtype=cfg.descriptor_dtype)
             result.descriptors = dpath if table is not None else None

@@ -1,0 +1,90 @@
+#!/usr/bin/env python3
+"""Maps of every size on drives as cameras record them, through the CLI as a user runs it.
+
+    python benchmarks/drive_pair.py                      # Markdown table (about 15 minutes on 2 cores)
+    python benchmarks/drive_pair.py --pairs drive --keep 0.5 --hmm on
+
+Every row is ``memlog evaluate`` on a shared pair, whose maps are all written by ``memlog map``'s
+writer and matched as ``memlog localize`` matches them (``tests/test_drive_pair.py`` checks that
+its full and memorable rows equal ``memlog localize`` against the maps ``memlog map`` writes):
+
+* **full**: ``memlog map --keep-fraction 1`` (every frame but the stops' repeats);
+* **memorable**: ``memlog map --keep-fraction K`` (memlog's selection; K = 0.25 is the default);
+* **every k-th** and **random** (mean of ``--seeds`` maps): maps of the memorable map's size.
+
+Pairs (``../shared/data``): ``aligned``, the Stromovka autumn map / winter query, frame i of one is
+place i of the other; ``drive``, the same places driven as a camera records a drive, with stops,
+crawls and fast stretches, another speed profile on each drive (``stromovka_drive_*``; 1024x384,
+DINOv2, patch re-rank); ``nordland``, the Nordland summer / winter slice (64x32, thumbnails: no
+patch features, so neither the re-rank nor the drive HMM runs). ``--hmm off`` is ``--no-hmm``.
+
+Columns: R@1 / AUC-PR of each map under the map-only protocol, and the frames of the full and the
+memorable map. Outputs are kept in ``--cache`` (each pair's descriptors are reused across rows).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+SHARED = ROOT.parent / "shared" / "data"
+
+PAIRS = {"aligned": ("stromovka_autumn.mcap", "stromovka_winter.mcap", "stromovka_truth.json"),
+         "drive": ("stromovka_drive_autumn.mcap", "stromovka_drive_winter.mcap", "stromovka_drive_truth.json"),
+         "nordland": ("nordland_dev_summer.mcap", "nordland_dev_winter.mcap", "nordland_dev_truth.json")}
+KEEPS = ["0.5", "0.25"]
+
+
+def run(cache: Path, pair: str, keep: str, hmm: bool, seeds: int) -> dict[str, object]:
+    """``memlog evaluate`` of ``pair`` at ``--keep-fraction keep``; its results.json."""
+    from memlog.cli.app import main as memlog
+
+    ref, query, truth = (SHARED / f for f in PAIRS[pair])
+    out = cache / pair
+    out.mkdir(parents=True, exist_ok=True)
+    args = ["-q", "evaluate", "--reference", str(ref), "--query", str(query), "--truth", str(truth), "-o", str(out),
+            "--keep-fraction", keep, "--seeds", str(seeds), "--no-report", *([] if hmm else ["--no-hmm"])]
+    t0 = time.perf_counter()
+    with contextlib.redirect_stdout(io.StringIO()):  # (evaluate's own table; the row is printed below)
+        rc = memlog(args)
+    if rc != 0:
+        raise SystemExit(f"memlog {' '.join(args)} failed")
+    res: dict[str, object] = json.loads((out / "results.json").read_text())
+    res["bench_seconds"] = time.perf_counter() - t0
+    return res
+
+
+def cell(row: dict[str, float]) -> str:
+    return f"{row['recall@1']:.3f} / {row['auc']:.3f}"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-drive-pair"))
+    ap.add_argument("--pairs", nargs="+", default=list(PAIRS), choices=list(PAIRS))
+    ap.add_argument("--keep", nargs="+", default=KEEPS, help="keep fractions of the memorable map (default 0.5 0.25)")
+    ap.add_argument("--hmm", nargs="+", default=["on", "off"], choices=["on", "off"])
+    ap.add_argument("--seeds", type=int, default=20)
+    a = ap.parse_args()
+    print("| pair | keep | drive HMM | full | memorable | every k-th | random | frames (full / memorable) | s |\n"
+          "|---|---|---|---|---|---|---|---|---|")
+    for pair in a.pairs:
+        for keep in a.keep:
+            for hmm in a.hmm:
+                r = run(a.cache, pair, keep, hmm == "on", a.seeds)
+                rows = {k: r[k] for k in ("full", "memorable", "uniform", "random")}
+                print(f"| {pair} | {keep} | {hmm} | {cell(rows['full'])} | {cell(rows['memorable'])} | "
+                      f"{cell(rows['uniform'])} | {cell(rows['random'])} | {rows['full']['frames']} / "
+                      f"{rows['memorable']['frames']} | {r['bench_seconds']:.0f} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,107 @@
+"""Drives as a camera records them (the shared Stromovka drive pair: stops, crawls and fast
+stretches, 1024x384), through the CLI as a user runs it: every map ``memlog evaluate`` reports is
+a map ``memlog map`` writes, matched as ``memlog localize`` matches it.
+
+What is checked against independent expectations:
+- ``memlog map --keep-fraction 1`` and ``memlog map`` (the default size) are written and
+  ``memlog localize`` matches the winter drive against each; R@1 and the AUC-PR are computed here
+  from the match tables and the truth file (R@1 by hand, the AUC by memlog's PR curve on those
+  hand-counted hits);
+- ``memlog evaluate`` on the same pair reports, for its full and memorable rows, maps of exactly
+  the frames those two maps keep, with the same R@1 and AUC;
+- its every-k-th baseline is a map on disk, written by the same writer, of evenly spaced frames,
+  whose metadata says the frames were given, and which ``memlog localize`` reads.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from memlog.cli.app import main
+from tests.conftest import shared
+
+
+def _scores(matches: Path, truth: list[list[int]]) -> tuple[float, float]:
+    """(R@1, AUC-PR) of a match table against the truth, the hits counted here."""
+    from memlog.evaluation.metrics import pr_curve
+
+    t = pq.read_table(matches).to_pydict()
+    best = {q: (r, c) for q, r, k, c in zip(t["query_id"], t["ref_id"], t["rank"], t["confidence"]) if k == 0}
+    hits = np.array([q in best and best[q][0] in set(m) for q, m in enumerate(truth)])
+    conf = np.array([best[q][1] if q in best else -np.inf for q in range(len(truth))])
+    return float(hits.mean()), pr_curve(conf, hits, np.ones(len(truth), bool)).auc
+
+
+@pytest.fixture(scope="module")
+def drive_pair(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    d = tmp_path_factory.mktemp("drive_pair")
+    autumn, winter = shared("stromovka_drive_autumn.mcap"), shared("stromovka_drive_winter.mcap")
+    truth_file = shared("stromovka_drive_truth.json")
+    truth = json.loads(truth_file.read_text())["matches"]
+    out: dict[str, Any] = {"dir": d, "autumn": autumn, "winter": winter, "truth_file": truth_file, "truth": truth}
+    for name, args in (("full", ["--keep-fraction", "1"]), ("default", [])):
+        m = d / f"{name}.mcap"
+        assert main(["-q", "map", str(autumn), "-o", str(m), *args]) == 0
+        assert main(["-q", "localize", str(m.with_suffix(".parquet")), str(winter), "-o", str(d / f"{name}.x.parquet"),
+                     "--map", str(m)]) == 0
+        out[name] = (m.with_suffix(".parquet"), _scores(d / f"{name}.x.parquet", truth))
+    ev = d / "eval"
+    assert main(["-q", "evaluate", "--reference", str(autumn), "--query", str(winter), "--truth", str(truth_file),
+                 "-o", str(ev), "--seeds", "2"]) == 0
+    out["results"] = json.loads((ev / "results.json").read_text())
+    out["eval"] = ev
+    return out
+
+
+@pytest.mark.parametrize("row, written", [("full", "full"), ("memorable", "default")])
+def test_evaluate_rows_are_the_maps_memlog_map_writes(drive_pair: dict[str, Any], row: str, written: str) -> None:
+    res = drive_pair["results"][row]
+    parquet, (r1, auc) = drive_pair[written]
+    kept = sorted(pq.read_table(parquet).to_pydict()["frame_index"])
+    assert res["frames"] == len(kept)
+    if row == "memorable":
+        assert sorted(res["kept_indices"]) == kept
+    else:  # the full map is written beside the results, and keeps what `memlog map --keep-fraction 1` keeps
+        assert sorted(pq.read_table(Path(res["map"]).with_suffix(".parquet")).to_pydict()["frame_index"]) == kept
+    assert res["recall@1"] == pytest.approx(r1, abs=1e-9)
+    assert res["auc"] == pytest.approx(auc, abs=1e-9)
+
+
+def test_the_full_map_leaves_the_stops_out(drive_pair: dict[str, Any]) -> None:
+    """The autumn drive stands at place 20 for 20 frames and at place 71 for 15: a full map keeps
+    one view of each stop, not every standing frame (and so fewer frames than the drive has)."""
+    places = json.loads(drive_pair["truth_file"].read_text())["reference_places"]
+    kept = pq.read_table(drive_pair["full"][0]).to_pydict()["frame_index"]
+    at = [places[i] for i in kept]
+    assert len(kept) < len(places)
+    assert at.count(20) <= 2 and at.count(71) <= 2
+    assert set(at) >= {p for p in places if places.count(p) == 1}  # every place driven through once is kept
+
+
+def test_every_kth_baseline_is_a_written_map(drive_pair: dict[str, Any], tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    res = drive_pair["results"]["uniform"]
+    m = Path(res["map"])
+    kept = pq.read_table(m.with_suffix(".parquet")).to_pydict()["frame_index"]
+    n = len(json.loads(drive_pair["truth_file"].read_text())["reference_places"])  # the drive's frames
+    assert len(kept) == res["frames"] == drive_pair["results"]["memorable"]["frames"]
+    steps = np.diff(sorted(kept))
+    assert steps.max() - steps.min() <= 1 and steps.min() >= n // len(kept) - 1  # evenly spaced
+    with open(m, "rb") as f:
+        rec = next(x.metadata for x in make_reader(f).iter_metadata() if x.name == "memlog_map")
+    assert rec["kept_by"] == "given"
+    # and it is a map localize reads, checked against its own log
+    assert main(["-q", "localize", str(m.with_suffix(".parquet")), str(drive_pair["winter"]), "-o",
+                 str(tmp_path / "u.parquet"), "--map", str(m)]) == 0
+    r1, _auc = _scores(tmp_path / "u.parquet", drive_pair["truth"])
+    assert r1 == pytest.approx(res["recall@1"], abs=1e-9)
+    # the random baselines were measured and not left behind
+    assert drive_pair["results"]["random"]["seeds"] == 2
+    assert not list((drive_pair["eval"] / "maps").glob("random-*"))
