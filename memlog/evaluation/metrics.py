@@ -61,10 +61,13 @@ __all__ = [
     "parse_truth",
     "truth_from_positions",
     "PAPER_READINGS",
+    "Discarded",
 ]
 
 #: The readings of the paper protocol's "a discarded best match" (see :func:`evaluate_paper`).
 PAPER_READINGS = ("false_negative", "true_negative", "uncovered_negative")
+#: one of :data:`PAPER_READINGS`
+Discarded = Literal["false_negative", "true_negative", "uncovered_negative"]
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -364,7 +367,7 @@ def evaluate_paper(
     truth: Truth,
     map_mask: npt.ArrayLike,
     ns: Sequence[int] = (1, 5, 10),
-    discarded: Literal["false_negative", "true_negative", "uncovered_negative"] = "false_negative",
+    discarded: Discarded = "false_negative",
 ) -> ProtocolResult:
     """Paper protocol: search the full database; a best match outside the map is "no match".
 

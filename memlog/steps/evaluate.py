@@ -2,26 +2,32 @@
 
 Given a reference log, a query log and ground truth (a JSON ``matches`` file, or positions in
 both logs with a distance tolerance), it scores the reference as ``memlog map`` does (staged: the
-detector and ResMem only where they can change the map; with ``compare_exact``, every score of
-every frame, ``OUT/reference.scored.mcap``), describes both drives
-(``OUT/{reference,query}.<kind>.parquet``), writes the memorable-map log (``OUT/map.mcap`` +
-``OUT/map.parquet``) and evaluates, under the map-only and the paper protocol, the full map, the
-memorable map (exactly the frames the map step kept) and the baselines of the same size
-(uniform; random, 20 seeds). It adds map size and matching time and, when every reference frame
-has every score (``compare_exact``), the paper's threshold sweeps and the criterion contribution
-(otherwise each says why it is missing), and writes ``OUT/results.json`` and ``OUT/report.html``.
+detector and ResMem only where they can change the map, kept in OUT for a rerun:
+:mod:`memlog.steps.score_cache`; with ``compare_exact``, every score of every frame,
+``OUT/reference.scored.mcap``), describes both drives (``OUT/{reference,query}.<kind>.parquet``) and
+writes every map of the comparison with the map step's writer (:func:`~memlog.steps.map.make_map`,
+from the scores, looks, descriptors and patch features it already has): the memorable map
+(``OUT/map.mcap`` + ``OUT/map.parquet``, exactly the map ``memlog map`` writes with the same
+settings), the full map (``OUT/maps/full.mcap``: ``memlog map --keep-fraction 1``) and the baselines
+of the memorable map's size (every k-th frame ``uniform``; random frames, 20 seeds, written, measured
+and removed). Each is read back from its Parquet and matched as ``memlog localize`` matches it, in
+its own descriptor space (:mod:`memlog.evaluation.matching`), under the map-only and the paper
+protocol. It adds map size and matching time and, when every reference frame has every score
+(``compare_exact``), the paper's threshold sweeps and the criterion contribution
+(:mod:`memlog.evaluation.analysis`; otherwise each says why it is missing), and writes
+``OUT/results.json`` and ``OUT/report.html``.
 
 Outputs already in OUT are reused only when they were made from the same input (path, size,
 modification time) with the same settings; the run says which it reused and which it refused.
 
 Quick trials: ``window`` (start/end/stride, resolved per log) and ``max_frames`` restrict both
-drives to part of them; ``descriptors`` evaluates several descriptors in one run (each drive is
-described once per descriptor and cached as ``OUT/{reference,query}.<kind>.parquet``; the map of
-each is ``OUT/map.<kind>.mcap`` when there are several). With ``whiten`` (the default) every map
-is whitened by the transform the map step fitted (on the memorable map's kept frames, or the whole
-reference drive with ``whiten_on="drive"``), and the same transform
-is applied to the query descriptors; the unwhitened full map is reported beside it
-(``full_unwhitened``).
+drives to part of them (every map is made of the window's frames); ``descriptors`` evaluates several
+descriptors in one run (each drive is described once per descriptor and cached as
+``OUT/{reference,query}.<kind>.parquet``; the maps of each are ``OUT/map.<kind>.mcap`` and
+``OUT/maps/NAME.<kind>.mcap`` when there are several). With ``whiten`` (the default) every map is
+whitened by the transform fitted on its own kept frames (or the whole reference drive with
+``whiten_on="drive"``), as ``memlog map`` fits it, and the query with that map's transform; the
+unwhitened full map is reported beside it (``full_unwhitened``).
 """
 
 from __future__ import annotations
@@ -38,22 +44,15 @@ from memlog._version import __version__
 from memlog.configfile import check_ints
 from memlog.descriptors.auto import AUTO, resolve_descriptor
 from memlog.descriptors.base import Describer
-from memlog.descriptors.patches import PatchPCA
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import DESCRIBERS, make_describer
-from memlog.descriptors.search import time_per_query
-from memlog.descriptors.sequence import SequenceConfig, SequenceMatch, match_tables
+from memlog.descriptors.sequence import SequenceConfig
 from memlog.descriptors.table import DescriptorTable
-from memlog.descriptors.whitening import Whitening
 from memlog.errors import ConfigError, EvaluationError, MemlogError
-from memlog.evaluation.metrics import (
-    PAPER_READINGS,
-    ProtocolResult,
-    evaluate_map_only,
-    evaluate_paper,
-    parse_truth,
-    truth_from_positions,
-)
+from memlog.evaluation.analysis import SWEEP_STEPS, contribution, local_positions, mean_std, position_truth, sweeps
+from memlog.evaluation.matching import Matching, rows_for, whitened
+from memlog.evaluation.matching import truth_rows as truth_as_rows
+from memlog.evaluation.metrics import PAPER_READINGS, ProtocolResult, parse_truth
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow
 from memlog.io.identity import log_identity, same_identity
@@ -64,17 +63,21 @@ from memlog.outputs.descriptor_table import read_cached, read_descriptors, write
 from memlog.outputs.results import write_results
 from memlog.progress import info
 from memlog.scoring.config import ScoreConfig
-from memlog.selection import ScoreTable, distance_uniform_mask, random_masks, uniform_mask
+from memlog.selection import distance_uniform_mask, random_masks, uniform_mask
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
-from memlog.selection.paper import first_failing
-from memlog.steps.map import (Looks, MapConfig, MapResult, make_map, score_table, staged_scores_and_looks,
-                              staged_stageable)
+from memlog.steps.map import (
+    Looks,
+    MapConfig,
+    MapResult,
+    make_map,
+    score_table,
+    staged_stageable,
+)
 from memlog.steps.score import score
+from memlog.steps.score_cache import cached_staged_scores
 
 __all__ = ["evaluate", "EvaluateConfig", "EvaluateResult", "SWEEP_STEPS"]
 
-SWEEP_STEPS = tuple(round(0.1 * i, 1) for i in range(11))
-_CRITERIA = {1: "staticity", 2: "entropy", 3: "memorability"}
 
 
 @dataclass(frozen=True)
@@ -162,90 +165,9 @@ class EvaluateResult:
         return self.results[key]
 
 
-def _proto(r: ProtocolResult) -> dict[str, Any]:
-    return {"auc": r.auc, "recall@1": r.recall_at.get(1), "recall@5": r.recall_at.get(5),
-            "recall@10": r.recall_at.get(10), "precision@100%recall": r.precision_at_full_recall,
-            "coverage": r.coverage}
-
-
-class _Matching:
-    """How the query drive is matched against a map: by the one drive matcher
-    (:func:`memlog.descriptors.sequence.match_tables`, what ``memlog localize`` calls), as
-    sequences (the default) or frame by frame. A map is a mask over the reference rows, or the
-    map's own descriptor table as ``memlog map`` wrote it (``map_table``: read back from its
-    Parquet, so what is measured is the file a user gets). ``ranked`` gives the best places with
-    the confidence the PR curves use in column 0 (the margin, one scale for every row)."""
-
-    def __init__(self, q_t: DescriptorTable, ref_t: DescriptorTable, cfg: EvaluateConfig) -> None:
-        self.q_t, self.ref_t, self.cfg = q_t, ref_t, cfg
-        self.q = q_t.descriptors
-        self.seq = cfg.sequence
-        self.sequence = self.seq.enabled
-        self.info: dict[str, Any] = {"matching": "sequence" if self.sequence else "single frame"}
-        self._full: dict[bool, tuple[np.ndarray, np.ndarray]] = {}
-        self._rows = {int(f): r for r, f in enumerate(ref_t.frame_index)}
-
-    def _config(self, sequence: bool) -> SequenceConfig:
-        return self.seq if sequence else replace(self.seq, length=0, causal=False)
-
-    def _record(self, sm: SequenceMatch) -> None:
-        if "sequence" not in self.info and sm.sequence.any():
-            self.info.update({"sequence": self.seq.to_dict(),
-                              **{k: sm.info.get(k) for k in ("coordinate", "coordinate_note", "max_gap_s", "stops",
-                                                             "standing_rows", "length_used", "map_runs",
-                                                             "rerank", "hmm")}})
-        if "fallback" not in self.info and sm.info.get("fallback"):
-            self.info["fallback"] = sm.info["fallback"]
-            self.info["fallback_reasons"] = sm.info.get("fallback_reasons")
-        self.info.setdefault("sequence_queries", int(sm.sequence.sum()))
-
-    def ranked(self, mask: np.ndarray | None, k: int, sequence: bool | None = None,
-               map_table: DescriptorTable | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(indices [Q, k] as reference rows, confidence-first scores [Q, k]) of the map ``mask``
-        (None: every row) or ``map_table``."""
-        seq = self.sequence if sequence is None else sequence
-        if map_table is None and mask is None and k <= self.cfg.k and seq in self._full:
-            idx, sc = self._full[seq]
-            return idx[:, :k], sc[:, :k]
-        if map_table is not None:
-            sm = match_tables(self.q_t, map_table, self._config(seq), k=k)
-            rows = np.array([self._rows.get(int(f), -1) for f in map_table.frame_index], dtype=np.int64)
-            idx = np.where(sm.indices >= 0, rows[np.maximum(sm.indices, 0)], -1)
-        else:
-            sm = match_tables(self.q_t, self.ref_t, self._config(seq), k=k, ref_mask=mask)
-            idx = sm.indices
-        if seq and (map_table is not None or mask is None):  # what the summary says: the full and memorable maps
-            self._record(sm)
-        sc = sm.scores.copy()
-        sc[:, 0] = sm.confidence
-        out = (idx, sc)
-        if map_table is None and mask is None and k == self.cfg.k:
-            self._full[seq] = out
-        return out
-
-    def evaluate(self, truth: list[set[int]], mask: np.ndarray, sequence: bool | None = None,
-                 map_table: DescriptorTable | None = None) -> tuple[dict[str, Any], ProtocolResult, ProtocolResult]:
-        """Both protocols for the map ``mask`` (matched against ``map_table`` when given, the
-        map's frames as read back from its file): map-only (only its frames are searched) and the
-        paper's (every reference frame searched, a best match outside the map is no match)."""
-        cfg = self.cfg
-        seq = self.sequence if sequence is None else sequence
-        k = min(cfg.k, max(1, int(mask.sum())))
-        ns = tuple(n for n in (1, 5, 10) if n <= max(k, 1))
-        t0 = time.perf_counter()
-        idx, sc = self.ranked(mask, max(ns), seq, map_table)
-        seconds = (time.perf_counter() - t0) / max(1, len(self.q))
-        mo = evaluate_map_only((idx, sc), truth, mask, ns=ns)
-        full_idx, full_sc = self.ranked(None, cfg.k, seq)
-        po = evaluate_paper((full_idx[:, : max(ns)], full_sc[:, : max(ns)]), truth, mask, ns=ns,
-                            discarded=cfg.paper_discarded)
-        if not seq:  # the search alone, repeated (the sequence time above is one pass)
-            seconds = time_per_query(self.q, self.ref_t.descriptors, repeats=3, ref_mask=mask, max_queries=50).seconds_per_query
-        out = {"frames": int(mask.sum()), **_proto(mo), "match_seconds_per_query": seconds,
-               "paper_protocol": _proto(po)}
-        if seq and sequence is None:
-            out["single_frame"] = self.evaluate(truth, mask, sequence=False, map_table=map_table)[0]
-        return out, mo, po
+def _matching(q_t: DescriptorTable, ref_t: DescriptorTable, cfg: EvaluateConfig) -> Matching:
+    """How the query is matched and scored against a map in the space of ``q_t`` / ``ref_t``."""
+    return Matching(q_t, ref_t, cfg.sequence, cfg.k, cfg.paper_discarded)
 
 
 class _MapWriter:
@@ -261,6 +183,7 @@ class _MapWriter:
         self.reference, self.out, self.kind, self.topic, self.ref_t = reference, out, kind, topic, ref_t
         self.scores, self.looks, self.config = scores, looks, config
         self.map_score, self.window = map_score, window
+        self.reports: list[ReadReport] = []
         self.known = {(topic, int(i)): ref_t.descriptors[r] for r, i in enumerate(ref_t.frame_index)}
         self.known_patches = None if ref_t.patches is None else {
             (topic, int(i)): ref_t.patches[r] for r, i in enumerate(ref_t.frame_index)}
@@ -276,17 +199,26 @@ class _MapWriter:
     def write(self, name: str, *, select: SelectionConfig | None = None, keep: np.ndarray | None = None,
               temporary: bool = False) -> MapResult:
         """Write map ``name``: the selection's frames (``select``: other selection settings, scored
-        by the map step itself, as ``memlog map`` with those settings scores the drive: the staged
-        scores of one selection do not serve another), or the reference rows ``keep`` (a mask over
-        the described frames)."""
+        as ``memlog map`` with those settings scores the drive — the staged scores of one selection
+        do not serve another — and cached in OUT like the first), or the reference rows ``keep`` (a
+        mask over the described frames)."""
         path = self.path(name)
         path.parent.mkdir(exist_ok=True)
-        # another selection: its own scoring, with the scoring settings `memlog map` would use
-        cfg = self.config if select is None else replace(self.config, select=select, score=self.map_score)
+        cfg, looks = self.config, self.looks
+        scores: dict[str, list[dict[str, Any]]] | None = self.scores
+        if select is not None:  # its own scoring, with the scoring settings `memlog map` would use
+            cfg = replace(self.config, select=select, score=self.map_score)
+            scores, looks = None, None
+            staged = replace(cfg, descriptor=None)
+            if staged_stageable(staged):
+                recs, looks, report = cached_staged_scores(self.out, f"reference.{name}", self.reference, staged,
+                                                           self.window)
+                scores = {self.topic: recs.get(self.topic, [])}
+                if report is not None:
+                    self.reports.append(report)
         given = None if keep is None else {self.topic: [int(i) for i in self.ref_t.frame_index[keep]]}
-        res = make_map(self.reference, path, cfg, scores=self.scores if select is None else None,
-                       known_descriptors=self.known,
-                       known_patches=self.known_patches, keep_frames=given, known_looks=self.looks, window=self.window)
+        res = make_map(self.reference, path, cfg, scores=scores, known_descriptors=self.known,
+                       known_patches=self.known_patches, keep_frames=given, known_looks=looks, window=self.window)
         if temporary:
             self._temporary += [path] + ([res.descriptors] if res.descriptors is not None else [])
         return res
@@ -305,7 +237,7 @@ class _MapWriter:
         pca = t.patch_pca if t is not None else None
         kept = t.frame_index if t is not None else np.array(
             sorted(int(i) for s in res.selections.values() for i in s.kept_indices), dtype=np.int64)
-        matching = _Matching(_whitened(q_t, white, pca), _whitened(self.ref_t, white, pca), cfg)
+        matching = _matching(whitened(q_t, white, pca), whitened(self.ref_t, white, pca), cfg)
         r, mo, po = matching.evaluate(truth, np.isin(self.ref_t.frame_index, kept), map_table=t)
         r["whitening"] = res.whitening
         return r, (mo, po)
@@ -316,23 +248,6 @@ class _MapWriter:
             self._tables.pop(p, None)
             Path(p).unlink(missing_ok=True)
         self._temporary.clear()
-
-
-def _rows_for(table: DescriptorTable, n_frames: int) -> np.ndarray:
-    """Row of each frame index 0..n-1 in ``table`` (-1 when the frame was not described)."""
-    rows = np.full(n_frames, -1, dtype=np.int64)
-    ok = table.frame_index < n_frames
-    rows[table.frame_index[ok]] = np.nonzero(ok)[0]
-    return rows
-
-
-def _truth_rows(truth_frames: list[set[int]], q: DescriptorTable, ref_rows: np.ndarray) -> list[set[int]]:
-    """Truth re-indexed from frame indices to descriptor rows (queries = rows of q)."""
-    out = []
-    for fi in q.frame_index:
-        s = truth_frames[int(fi)] if int(fi) < len(truth_frames) else set()
-        out.append({int(ref_rows[j]) for j in s if j < len(ref_rows) and ref_rows[j] >= 0})
-    return out
 
 
 def _reuse_scores(path: Path, reference: str, cfg: ScoreConfig, topic: str | None,
@@ -462,8 +377,9 @@ def evaluate(
     staged_cfg = MapConfig(score=cfg.score, select=cfg.select, topics=(ref_topic,), descriptor=None,
                            candidates=cfg.candidates)
     if not cfg.compare_exact and staged_stageable(staged_cfg):
-        staged_recs, looks, staged_report = staged_scores_and_looks(reference, staged_cfg, ref_window)
-        reports.append(staged_report)
+        staged_recs, looks, staged_report = cached_staged_scores(out, "reference", reference, staged_cfg, ref_window)
+        if staged_report is not None:
+            reports.append(staged_report)
         recs = staged_recs.get(ref_topic, [])
     else:
         scored = out / "reference.scored.mcap"
@@ -496,10 +412,10 @@ def evaluate(
             truth_src = str(truth)
             tf = truth_frames
         else:
-            tf = _position_truth(ref_t, q_t, cfg.tol_m)
+            tf = position_truth(ref_t, q_t, cfg.tol_m)
             truth_src = f"positions within {cfg.tol_m} m"
-        ref_rows = _rows_for(ref_t, max(n_ref_rows, max((max(x) + 1 for x in tf if x), default=0)))
-        truth_rows = _truth_rows(tf, q_t, ref_rows)
+        ref_rows = rows_for(ref_t, max(n_ref_rows, max((max(x) + 1 for x in tf if x), default=0)))
+        truth_rows = truth_as_rows(tf, q_t, ref_rows)
         if not any(truth_rows):
             raise EvaluationError("no query frame in the window has a true match among the reference frames in it")
 
@@ -525,7 +441,7 @@ def evaluate(
 
         # 5. each map under both protocols, in its own descriptor space (the query whitened and its
         # patches projected by that map's transforms, as localize does); frame by frame too
-        matching = _Matching(_whitened(q_t, whitening, patch_pca), _whitened(ref_t, whitening, patch_pca), cfg)
+        matching = _matching(whitened(q_t, whitening, patch_pca), whitened(ref_t, whitening, patch_pca), cfg)
         res: dict[str, Any] = {"descriptor": choice.to_dict(), "describer": describer.meta().to_dict(),
                                "whitening": map_res.whitening, "matching": matching.info}
         per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
@@ -537,7 +453,7 @@ def evaluate(
             exact = cfg.select.run(map_res.tables[ref_topic], ms_bound="one" if score_cfg.normalize == "static" else "ss")
             given["memorable_exact"] = np.isin(ref_t.frame_index, exact.kept_indices)
         if "x" in ref_t.positions or "lat" in ref_t.positions:
-            pos = _local_positions(ref_t)
+            pos = local_positions(ref_t)
             by_distance = distance_uniform_mask(pos, kk) if pos is not None else None
             if by_distance is not None:
                 given["uniform_distance"] = by_distance
@@ -550,7 +466,7 @@ def evaluate(
             res[name], per_variant[name] = maps.evaluate(maps.write(name, keep=m), q_t, truth_rows, cfg)
             res[name]["map"] = str(maps.path(name))
         if whitening is not None:
-            raw = _Matching(q_t.projected(patch_pca), ref_t.projected(patch_pca), cfg)
+            raw = _matching(q_t.projected(patch_pca), ref_t.projected(patch_pca), cfg)
             full_table = maps.table(full_res)
             assert full_table is not None  # (evaluate always describes)
             full_mask = np.isin(ref_t.frame_index, full_table.frame_index)
@@ -566,8 +482,9 @@ def evaluate(
         rand = [maps.evaluate(maps.write(f"random-{seed}", keep=m, temporary=True), q_t, truth_rows, cfg)[0]
                 for seed, m in zip(range(cfg.seeds), random_masks(len(ref_t), kk, range(cfg.seeds)))]
         maps.clean()
-        res["random"] = _mean_std(rand)
+        res["random"] = mean_std(rand)
         by_kind[kind] = res
+        reports.extend(maps.reports)
         if main is None:
             main = (choice, describer, ref_t, matching, truth_rows, table, sel, per_variant, map_res, truth_src)
 
@@ -594,9 +511,9 @@ def evaluate(
         results["sweeps"] = {"skipped": why}
         results["criterion_contribution"] = {"skipped": why}
     else:
-        results["sweeps"] = _sweeps(table, matching, truth_rows, cfg)
+        results["sweeps"] = sweeps(table, matching, truth_rows, cfg.k, cfg.paper_discarded)
         th = sel.thresholds if cfg.select.mode == "paper" and sel.thresholds else cfg.select.thresholds
-        results["criterion_contribution"] = _contribution(table, per_variant["full"][0], th)
+        results["criterion_contribution"] = contribution(table, per_variant["full"][0], th)
     results["map_size"] = map_res.to_dict()
     results["map_size"].pop("topics", None)
     results["truth"] = truth_src
@@ -626,124 +543,3 @@ def evaluate(
     if map_res.report is not None:
         reports.append(map_res.report)
     return EvaluateResult(results, reports)
-
-
-def _whitened(table: DescriptorTable, whitening: Whitening | None, patch_pca: PatchPCA | None) -> DescriptorTable:
-    """``table`` with its descriptors whitened by ``whitening`` and its patches projected by
-    ``patch_pca`` (the map's: the space the map's Parquet is in, as ``localize`` puts a query
-    there); descriptors unchanged without a whitening."""
-    table = table.projected(patch_pca)
-    if whitening is None:
-        return table
-    meta = replace(table.meta, dim=whitening.dim_out, whitening=whitening.sha256)
-    return replace(table, descriptors=whitening.apply(table.descriptors), meta=meta, whitening=None)
-
-
-def _position_truth(ref_t: DescriptorTable, q_t: DescriptorTable, tol_m: float) -> list[set[int]]:
-    """Truth by position, indexed by frame index (like a truth file)."""
-    def arr(t: DescriptorTable) -> tuple[np.ndarray, bool]:
-        p = t.positions
-        if "lat" in p:
-            return np.stack([p["lat"], p["lon"]], axis=1), True
-        if "x" in p:
-            return np.stack([p["x"], p["y"]], axis=1), False
-        raise EvaluationError("no --truth file and the logs have no positions (NavSatFix, pose or odometry)")
-
-    qp, geo_q = arr(q_t)
-    rp, geo_r = arr(ref_t)
-    if geo_q != geo_r:
-        raise EvaluationError("reference and query positions are in different frames (GNSS vs local pose)")
-    rows = truth_from_positions(qp, rp, tol_m, geographic=geo_q)
-    n_q = int(q_t.frame_index.max()) + 1
-    by_frame: list[set[int]] = [set() for _ in range(n_q)]
-    for r, s in enumerate(rows):
-        by_frame[int(q_t.frame_index[r])] = {int(ref_t.frame_index[j]) for j in s}
-    return by_frame
-
-
-def _local_positions(t: DescriptorTable) -> np.ndarray | None:
-    """The table's positions in metres ([N, 2]; geographic ones projected about their mean)."""
-    from memlog.io.positions import geo_origin, geo_to_local
-
-    p = t.positions
-    if "x" in p:
-        return np.stack([p["x"], p["y"]], axis=1)
-    if "lat" in p:
-        ll = np.stack([p["lat"], p["lon"]], axis=1)
-        ok = np.all(np.isfinite(ll), axis=1)
-        if not ok.any():
-            return None
-        return np.asarray(geo_to_local(ll, geo_origin(ll[ok])), dtype=np.float64)
-    return None
-
-
-def _mean_std(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    def agg(key_path: tuple[str, ...]) -> tuple[float, float]:
-        vals = []
-        for r in rows:
-            v: Any = r
-            for k in key_path:
-                v = v[k]
-            vals.append(np.nan if v is None else float(v))
-        a = np.asarray(vals)
-        return float(np.nanmean(a)), float(np.nanstd(a))
-
-    out: dict[str, Any] = {"frames": rows[0]["frames"], "seeds": len(rows), "std": {}}
-    if "single_frame" in rows[0]:
-        out["single_frame"] = _mean_std([r["single_frame"] for r in rows])
-    for key in ("coverage", "auc", "recall@1", "recall@5", "recall@10", "precision@100%recall",
-                "match_seconds_per_query"):
-        if rows[0].get(key) is None:
-            out[key] = None
-            continue
-        out[key], out["std"][key] = agg((key,))
-    out["paper_protocol"] = {"std": {}}
-    for key in ("auc", "recall@1", "recall@5", "recall@10", "coverage"):
-        if rows[0]["paper_protocol"].get(key) is None:
-            continue
-        m, s = agg(("paper_protocol", key))
-        out["paper_protocol"][key] = m
-        out["paper_protocol"]["std"][key] = s
-    return out
-
-
-def _sweeps(table: ScoreTable, matching: _Matching, truth_rows: list[set[int]],
-            cfg: EvaluateConfig) -> dict[str, list[dict[str, Any]]]:
-    """The paper's sweeps: each threshold from 0 to 1 by 0.1 with the other two at 0 (matched
-    as the main results are)."""
-    full_idx, full_sim = matching.ranked(None, cfg.k)
-    out: dict[str, list[dict[str, Any]]] = {}
-    for name in ("mt", "st", "et"):
-        rows = []
-        for v in SWEEP_STEPS:
-            th = {"mt": 0.0, "st": 0.0, "et": 0.0, name: v}
-            keep = first_failing(table, th["mt"], th["st"], th["et"]) == 0
-            row: dict[str, Any] = {"threshold": v, "frames": int(keep.sum())}
-            if keep.any():
-                ns = (1,)
-                idx, sim = matching.ranked(keep, 1)
-                mo = evaluate_map_only((idx, sim), truth_rows, keep, ns=ns)
-                po = evaluate_paper((full_idx[:, :1], full_sim[:, :1]), truth_rows, keep, ns=ns,
-                                    discarded=cfg.paper_discarded)
-                row.update({"auc": mo.auc, "recall@1": mo.recall_at[1], "coverage": mo.coverage,
-                            "paper_auc": po.auc, "paper_recall@1": po.recall_at[1]})
-            else:
-                row.update({"auc": 0.0, "recall@1": 0.0, "coverage": 0.0, "paper_auc": 0.0, "paper_recall@1": 0.0})
-            rows.append(row)
-        out[name] = rows
-    return out
-
-
-def _contribution(table: ScoreTable, full: ProtocolResult, th: dict[str, float]) -> dict[str, Any]:
-    """Of the queries the full map mismatched, which criterion would have discarded their (wrong) best match."""
-    codes = first_failing(table, th["mt"], th["st"], th["et"])
-    wrong = ~full.correct & (full.best_index >= 0)
-    counts = {"staticity": 0, "entropy": 0, "memorability": 0, "kept": 0}
-    for b in full.best_index[wrong]:
-        c = int(codes[int(b)])
-        counts[_CRITERIA.get(c, "kept")] += 1
-    return {"mismatched_queries": int(wrong.sum()), "wrong_match_discarded_by": counts,
-            "thresholds": dict(th),
-            "note": "for each query the full map mismatched, the first criterion (staticity, entropy, "
-                    "memorability) that the paper's rule at these thresholds fails for the wrongly matched "
-                    "reference frame; 'kept' = that frame passes all three"}
