@@ -12,6 +12,7 @@ import importlib.util
 import os
 import shutil
 from pathlib import Path
+from collections.abc import Iterator
 from types import ModuleType
 from typing import NoReturn
 
@@ -77,6 +78,21 @@ def load_fixture_script() -> ModuleType:
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+@pytest.fixture(autouse=True)
+def _memlog_logger_restored() -> Iterator[None]:
+    """Each test starts with the ``memlog`` logger as the library leaves it: a test that runs the CLI
+    in-process (``memlog.cli.app.main``) makes it print to stderr and stop propagating, which would
+    hide the records of every later test from ``caplog``."""
+    from memlog.progress import LOGGER, is_quiet, set_quiet
+
+    state = (list(LOGGER.handlers), LOGGER.level, LOGGER.propagate, is_quiet())
+    yield
+    LOGGER.handlers[:] = state[0]
+    LOGGER.setLevel(state[1])
+    LOGGER.propagate = state[2]
+    set_quiet(state[3])
 
 
 @pytest.fixture(scope="session")
