@@ -80,19 +80,34 @@ def load_fixture_script() -> ModuleType:
     return mod
 
 
-@pytest.fixture(autouse=True)
-def _memlog_logger_restored() -> Iterator[None]:
-    """Each test starts with the ``memlog`` logger as the library leaves it: a test that runs the CLI
-    in-process (``memlog.cli.app.main``) makes it print to stderr and stop propagating, which would
-    hide the records of every later test from ``caplog``."""
-    from memlog.progress import LOGGER, is_quiet, set_quiet
+def _logger_state() -> tuple[list[object], int, bool, bool]:
+    from memlog.progress import LOGGER, is_quiet
 
-    state = (list(LOGGER.handlers), LOGGER.level, LOGGER.propagate, is_quiet())
-    yield
-    LOGGER.handlers[:] = state[0]
+    return list(LOGGER.handlers), LOGGER.level, LOGGER.propagate, is_quiet()
+
+
+def _set_logger_state(state: tuple[list[object], int, bool, bool]) -> None:
+    from memlog.progress import LOGGER, set_quiet
+
+    LOGGER.handlers[:] = state[0]  # type: ignore[assignment]
     LOGGER.setLevel(state[1])
     LOGGER.propagate = state[2]
     set_quiet(state[3])
+
+
+#: the ``memlog`` logger as the library leaves it, before any test ran the CLI in-process
+_PRISTINE = _logger_state()
+
+
+@pytest.fixture(autouse=True)
+def _memlog_logger_restored() -> Iterator[None]:
+    """Each test starts and ends with the ``memlog`` logger as the library leaves it: running the CLI
+    in-process (``memlog.cli.app.main``, also in module-scoped fixtures, which run before this one)
+    makes it print to stderr and stop propagating, which would hide the records of every later test
+    from ``caplog``."""
+    _set_logger_state(_PRISTINE)
+    yield
+    _set_logger_state(_PRISTINE)
 
 
 @pytest.fixture(scope="session")
