@@ -5,9 +5,9 @@ The sequence matcher and the patch re-rank give each query frame a short list of
 window match along that place's path. Each frame decides alone, and on a drive that stops,
 crawls and speeds up a window that straddles a change of speed scores the wrong place best now
 and then. Consecutive frames of a drive are not independent: the place of the next frame lies a
-little further along the map. :func:`decide_along_drive` therefore decides every frame's place
+little further along the map. :func:`place_probabilities` therefore decides every frame's place
 with its neighbours', as a hidden Markov model over each query run
-(:func:`place_probabilities`; :func:`memlog.descriptors.sequence.match_tables` ranks the places by it):
+(:func:`memlog.descriptors.sequence.match_tables` ranks the places by it):
 
 * **states**: the frame's candidate places (map rows, at most :data:`memlog.descriptors.sequence.RERANK_PLACES`);
 * **emissions**: ``beta`` times the place's re-rank score (mean patch pairs along its path);
@@ -56,14 +56,11 @@ def _logsumexp(a: F64, axis: int) -> F64:
 def _transitions(x0: F64, x1: F64, dq: float, pace: float, spacing: float, vmax: float,
                  speed_cost: float, jump_cost: float) -> F64:
     """Log-probabilities ``[K0, K1]`` of moving from the places at ``x0`` to those at ``x1``."""
-    d = x1[None, :] - x0[:, None]
+    d = x1[None, :] - x0[:, None]  # (dq > 0: standing frames are one state)
     with np.errstate(invalid="ignore", divide="ignore"):
-        if dq <= 0:  # (not reached: standing frames are one state) the place stays
-            t = np.where(np.abs(d) <= 1e-9, 0.0, -np.inf)
-        else:
-            v = np.maximum(d, 0.5 * spacing) / (pace * dq)
-            t = -speed_cost * np.abs(np.log2(v))
-            t = np.where((d >= -1e-9) & (d <= vmax * dq + spacing), t, -np.inf)
+        v = np.maximum(d, 0.5 * spacing) / (pace * dq)
+        t = -speed_cost * np.abs(np.log2(v))
+        t = np.where((d >= -1e-9) & (d <= vmax * dq + spacing), t, -np.inf)
     t = np.where(np.isnan(t), -np.inf, t)
     out: F64 = np.logaddexp(t, -jump_cost)
     return out

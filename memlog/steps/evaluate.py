@@ -65,14 +65,7 @@ from memlog.progress import info
 from memlog.scoring.config import ScoreConfig
 from memlog.selection import distance_uniform_mask, random_masks, uniform_mask
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
-from memlog.steps.map import (
-    Looks,
-    MapConfig,
-    MapResult,
-    make_map,
-    score_table,
-    staged_stageable,
-)
+from memlog.steps.map import Looks, MapConfig, MapResult, make_map, score_table, staged_stageable
 from memlog.steps.score import score
 from memlog.steps.score_cache import cached_staged_scores
 
@@ -188,7 +181,7 @@ class _MapWriter:
         self.known_patches = None if ref_t.patches is None else {
             (topic, int(i)): ref_t.patches[r] for r, i in enumerate(ref_t.frame_index)}
         self._temporary: list[Path] = []
-        self._tables: dict[Path, DescriptorTable | None] = {}
+        self._tables: dict[Path, DescriptorTable] = {}
 
     def path(self, name: str) -> Path:
         suffix = f".{self.kind}" if self.kind else ""
@@ -223,22 +216,20 @@ class _MapWriter:
             self._temporary += [path] + ([res.descriptors] if res.descriptors is not None else [])
         return res
 
-    def table(self, res: MapResult) -> DescriptorTable | None:
-        """The map's descriptor table as read back from its Parquet (None without descriptors)."""
+    def table(self, res: MapResult) -> DescriptorTable:
+        """The map's descriptor table as read back from its Parquet (every map here is described)."""
         if res.output not in self._tables:
-            self._tables[res.output] = read_descriptors(res.descriptors) if res.descriptors is not None else None
+            assert res.descriptors is not None
+            self._tables[res.output] = read_descriptors(res.descriptors)
         return self._tables[res.output]
 
     def evaluate(self, res: MapResult, q_t: DescriptorTable, truth: list[set[int]], cfg: EvaluateConfig
                  ) -> tuple[dict[str, Any], tuple[ProtocolResult, ProtocolResult]]:
         """Both protocols for the written map ``res``, the query in the map's own space."""
         t = self.table(res)
-        white = t.whitening if (cfg.whiten and t is not None) else None
-        pca = t.patch_pca if t is not None else None
-        kept = t.frame_index if t is not None else np.array(
-            sorted(int(i) for s in res.selections.values() for i in s.kept_indices), dtype=np.int64)
-        matching = _matching(whitened(q_t, white, pca), whitened(self.ref_t, white, pca), cfg)
-        r, mo, po = matching.evaluate(truth, np.isin(self.ref_t.frame_index, kept), map_table=t)
+        white = t.whitening if cfg.whiten else None
+        matching = _matching(whitened(q_t, white, t.patch_pca), whitened(self.ref_t, white, t.patch_pca), cfg)
+        r, mo, po = matching.evaluate(truth, np.isin(self.ref_t.frame_index, t.frame_index), map_table=t)
         r["whitening"] = res.whitening
         return r, (mo, po)
 
@@ -436,8 +427,8 @@ def evaluate(
         mask = np.isin(ref_t.frame_index, sel.kept_indices)
         table = score_table(in_window[ref_topic], ref_topic)
         map_table = maps.table(map_res)
-        whitening = map_table.whitening if (cfg.whiten and map_table is not None) else None
-        patch_pca = map_table.patch_pca if map_table is not None else None
+        whitening = map_table.whitening if cfg.whiten else None
+        patch_pca = map_table.patch_pca
 
         # 5. each map under both protocols, in its own descriptor space (the query whitened and its
         # patches projected by that map's transforms, as localize does); frame by frame too
@@ -467,9 +458,7 @@ def evaluate(
             res[name]["map"] = str(maps.path(name))
         if whitening is not None:
             raw = _matching(q_t.projected(patch_pca), ref_t.projected(patch_pca), cfg)
-            full_table = maps.table(full_res)
-            assert full_table is not None  # (evaluate always describes)
-            full_mask = np.isin(ref_t.frame_index, full_table.frame_index)
+            full_mask = np.isin(ref_t.frame_index, maps.table(full_res).frame_index)
             res["full_unwhitened"] = raw.evaluate(truth_rows, full_mask)[0]
         res["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
                                  "select": cfg.select.mode, "candidates": cfg.candidates,

@@ -59,23 +59,13 @@ from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.selection.segment import SegmentConfig, cut_segments
 from memlog.selection.staged import MSState, StaticityMode, staticity_mode
 from memlog.steps import map_scoring
-from memlog.steps.map_scoring import (
-    CheapFrame,
-    Detected,
-    DetectJob,
-    DetectRule,
-    SegmentJob,
-    cheap_frames,
-    choose_chunk,
-    detect_chunk,
-    detect_segments,
-    staged_record,
-)
+from memlog.steps.map_scoring import (CheapFrame, Detected, DetectJob, DetectRule, SegmentJob, cheap_frames,
+                                      choose_chunk, detect_chunk, detect_segments, staged_record)
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
 from memlog.steps.score import scored_frames
 
-__all__ = ["make_map", "MapConfig", "MapResult", "score_table", "EmptyMapError", "collect_scores", "staged_scores", "staged_scores_and_looks",
-           "staged_stageable"]
+__all__ = ["make_map", "MapConfig", "MapResult", "score_table", "EmptyMapError", "collect_scores", "staged_scores",
+           "staged_scores_and_looks", "staged_stageable"]
 
 Records = dict[str, list[dict[str, Any]]]
 

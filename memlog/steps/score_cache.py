@@ -41,10 +41,10 @@ def cache_key(log: str | os.PathLike[str], config: MapConfig, window: FrameWindo
 
 def _pack(recs: Records, looks: Looks | None) -> bytes:
     arrays: dict[str, np.ndarray] = {"records": np.frombuffer(json.dumps(recs).encode(), dtype=np.uint8)}
-    topics = sorted(looks or {})
+    looks = looks or {}
+    topics = sorted(looks)
     arrays["topics"] = np.frombuffer(json.dumps(topics).encode(), dtype=np.uint8)
     for n, t in enumerate(topics):
-        assert looks is not None
         idx = sorted(looks[t])
         arrays[f"index{n}"] = np.array(idx, dtype=np.int64)
         for k, name in enumerate(("thumb", "view")):
