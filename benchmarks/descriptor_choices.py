@@ -2,7 +2,7 @@
 """Descriptor choices measured at camera resolution on Stromovka, with Nordland beside it (issue 31).
 
 What it measures: R@1, R@5 and AUC-PR (``benchmarks.matcher_defaults.metrics`` on the matcher's
-``confidence``) of ``memlog.descriptors.sequence.match_tables`` — the drive matcher ``memlog
+``confidence``) of ``memlog.matching.match_tables`` — the drive matcher ``memlog
 localize`` and ``memlog evaluate`` call — for three matchings: single frames
 (``SequenceConfig(length=0, rerank=False)``), sequences (``SequenceConfig(rerank=False)``) and
 sequences + patch re-rank (``SequenceConfig()``, the default), for these choices of the global
@@ -274,7 +274,7 @@ def swap(ref: Any, query: Any, ref_raw: np.ndarray, q_raw: np.ndarray, how: Any,
 
 
 def evaluate(ref: Any, query: Any, truth: list[set[int]], matchings: list[str]) -> dict[str, dict[str, float]]:
-    from memlog.descriptors.sequence import SequenceConfig, match_tables
+    from memlog.matching import SequenceConfig, match_tables
 
     out = {}
     sets = [truth[int(f)] for f in query.frame_index]

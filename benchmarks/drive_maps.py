@@ -181,7 +181,7 @@ def outcomes(q: Drive, r: Drive, mask: np.ndarray | None, seq: Any) -> tuple[np.
     ``seq.stops``: along the moving index, a standing query frame taking its stop's match)."""
     from dataclasses import replace
 
-    from memlog.descriptors.sequence import match_tables
+    from memlog.matching import match_tables
     from memlog.evaluation.metrics import pr_curve
 
     res = match_tables(q.table(), r.table(), replace(seq, coordinate="frames"), k=1, ref_mask=mask)
@@ -227,7 +227,7 @@ def fmt_rand(vals: list[tuple[float, ...]]) -> str:
 
 
 def matchers() -> dict[str, Any]:
-    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.matching import SequenceConfig
 
     return {"sequence": SequenceConfig(), "sequence, stops kept (--keep-stops)": SequenceConfig(stops=False),
             "single": SequenceConfig(length=0)}

@@ -13,7 +13,7 @@ frames runs along it with noise. Each setting runs in its own process, so its pe
 
 With the re-rank (default rows: off and on), the map and the query carry synthetic patch
 features as a map stores them (64 x 64 float16 per frame) and each query's 20 best places are
-re-ranked (``memlog.descriptors.sequence.rerank_by_patches``).
+re-ranked (``memlog.matching.rerank_by_patches``).
 
 Prints a Markdown table: map frames, their spacing, re-rank, ms per query, peak RSS (MB).
 """
@@ -67,7 +67,7 @@ def one(drive_frames: int, fraction: float, queries: int, dim: int, rerank: bool
     """Match ``queries`` query frames against the map of every 1/fraction-th of ``drive_frames``
     (with ``rerank``: the map and the query carry patch features, and the default re-rank runs)."""
     from memlog.descriptors.patches import PATCH_DIM, PatchPCA
-    from memlog.descriptors.sequence import SequenceConfig, match_tables
+    from memlog.matching import SequenceConfig, match_tables
 
     rng = np.random.default_rng(0)
     drive = _walk(drive_frames, dim, rng)

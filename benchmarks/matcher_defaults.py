@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """The drive matcher's defaults, measured at camera resolution (Stromovka) and on Nordland.
 
-Every row is matched by ``memlog.descriptors.sequence.match_tables`` — the function ``memlog
+Every row is matched by ``memlog.matching.match_tables`` — the function ``memlog
 localize`` and ``memlog evaluate`` call — on maps written by ``memlog map`` (read back from their
 Parquet, as localize reads them) and query descriptors made the way localize makes them
 (``describer_for(map)``: the map's descriptor and whitening, patch features projected by the
@@ -94,7 +94,7 @@ def _current(parquet: Path) -> bool:
 def _query(cache: Path, pair: str, parquet: Path) -> Any:
     """The query's descriptors as localize makes them against the map ``parquet`` (cached)."""
     from memlog.descriptors.extract import describe_log
-    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.matching import SequenceConfig
     from memlog.io.base import FrameWindow
     from memlog.outputs.descriptor_table import read_cached, read_descriptors, write_descriptors
     from memlog.steps.localize import describer_for, map_still_distance
@@ -115,7 +115,7 @@ def _query(cache: Path, pair: str, parquet: Path) -> Any:
 
 def run(query: Any, ref: Any, truth: list[set[int]], settings: dict[str, Any], mask: np.ndarray | None = None
         ) -> dict[str, float]:
-    from memlog.descriptors.sequence import SequenceConfig, match_tables
+    from memlog.matching import SequenceConfig, match_tables
 
     t0 = time.perf_counter()
     res = match_tables(query, ref, SequenceConfig(**settings), k=10, ref_mask=mask)

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Single frames, sequences and the patch re-rank, per dataset: the README's results table.
 
-Every row is ``memlog.descriptors.sequence.match_tables`` (what ``memlog localize`` and
+Every row is ``memlog.matching.match_tables`` (what ``memlog localize`` and
 ``memlog evaluate`` call) on maps written by ``memlog map`` and read back from their Parquet —
 the re-rank reads only what the map stores (patch features projected by the map's PCA, float16) —
 and query tables made as ``localize`` makes them (``benchmarks/matcher_defaults.py``'s maps and

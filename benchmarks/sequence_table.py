@@ -143,7 +143,7 @@ def run(q: Drive, r: Drive, mask: np.ndarray | None, cfg: Any, coordinate: str =
     ``memlog localize`` calls (``match_tables``), in ``coordinate``."""
     from dataclasses import replace
 
-    from memlog.descriptors.sequence import match_tables
+    from memlog.matching import match_tables
     from memlog.evaluation.metrics import pr_curve
 
     t0 = time.perf_counter()
@@ -175,11 +175,12 @@ def f3(m: dict[str, float]) -> str:
 
 
 def methods() -> dict[str, Any]:
-    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.matching import Experimental, SequenceConfig
 
     base = SequenceConfig()
-    return {"single": SequenceConfig(length=0), "offline": base, "offline dp": replace(base, path="dp"),
-            "causal": replace(base, causal=True), "causal dp": replace(base, causal=True, path="dp")}
+    dp = Experimental(path="dp")
+    return {"single": SequenceConfig(length=0), "offline": base, "offline dp": replace(base, experimental=dp),
+            "causal": replace(base, causal=True), "causal dp": replace(base, causal=True, experimental=dp)}
 
 
 def tab_quality(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
@@ -208,7 +209,7 @@ def tab_maps(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
 
 
 def tab_coords(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
-    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.matching import SequenceConfig
 
     rows = []
     for rname in ("base", "half-rate"):
@@ -228,7 +229,7 @@ def tab_coords(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
 
 
 def tab_sweep(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
-    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.matching import SequenceConfig
 
     r = refs["base"]
     cases = [("base", "full", None), ("mixed", "full", None), ("mixed", "quarter", every(len(r), 4))]
@@ -270,7 +271,7 @@ def tab_sweep(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
 def tab_design(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
     """The choices inside the score (experimental SequenceConfig settings): which pairs a path is
     scored on, how the sum is normalised, how many voted places compete for the best."""
-    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.matching import Experimental, SequenceConfig
 
     r = refs["base"]
     rows = []
@@ -279,7 +280,7 @@ def tab_design(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
                 ("default, 2 places compete", "mutual", "sqrt", 2), ("default, 6 places compete", "mutual", "sqrt", 6),
                 ("default, 12 places compete", "mutual", "sqrt", 12)]
     for name, pairing, norm, places in variants:
-        cfg = SequenceConfig(pairing=pairing, score_norm=norm, places=places)
+        cfg = SequenceConfig(experimental=Experimental(pairing=pairing, score_norm=norm, places=places))
         cells = []
         for qn in ("base", "mixed", "double-rate"):
             for step in (1, 2, 4):
@@ -290,7 +291,7 @@ def tab_design(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
 
 
 def tab_speed(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
-    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.matching import Experimental, SequenceConfig
 
     r = refs["base"]
     rows = []
@@ -298,7 +299,7 @@ def tab_speed(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
         for path in ("constant", "dp"):
             cells = []
             for qn in ("base", "stops", "fast", "mixed", "half-rate", "double-rate"):
-                m, _res, dt = run(qs[qn], r, None, SequenceConfig(speeds=sp, path=path))
+                m, _res, dt = run(qs[qn], r, None, SequenceConfig(speeds=sp, experimental=Experimental(path=path)))
                 cells.append(f"{m['R@1']:.3f} ({dt * 1e3:.1f})")
             rows.append([f"{sp[0]:g}..{sp[1]:g}", path, *cells])
     print("\n### Speed range and path model: R@1 (ms per query, provisional), full map, offline\n")
@@ -327,7 +328,7 @@ def synthetic_map(r: Drive, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarr
 def tab_size(qs: dict[str, Drive], refs: dict[str, Drive], sizes: list[int]) -> None:
     from memlog.descriptors.approx import IVFIndex
     from memlog.descriptors.search import Database
-    from memlog.descriptors.sequence import SequenceConfig, match_tables
+    from memlog.matching import SequenceConfig, match_tables
 
     r = refs["base"]
     rows = []

@@ -1,4 +1,4 @@
-"""The drive HMM (``memlog.descriptors.drive_hmm``): each frame's place decided with its neighbours'.
+"""The drive HMM (``memlog.matching.drive_hmm``): each frame's place decided with its neighbours'.
 
 Checked against values computed another way: the posterior (and, causal, the filtered) place
 probabilities against a brute-force sum over every path of a small chain, written here from the
@@ -16,7 +16,7 @@ import math
 import numpy as np
 import pytest
 
-from memlog.descriptors.drive_hmm import BETA, JUMP_COST, SPEED_COST, place_probabilities
+from memlog.matching.drive_hmm import BETA, JUMP_COST, SPEED_COST, place_probabilities
 
 
 def _log_trans(x0: float, x1: float, dq: float, pace: float, spacing: float, vmax: float) -> float:

@@ -266,7 +266,7 @@ def nordland_eval(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]
     """evaluate summer -> winter (first 200 places, stand-in ResMem) with sequences (the default)
     and with single frames (``--sequence 0``), each with ``--compare-exact`` (the exact selection's
     column beside the map's: opt-in, it scores every reference frame's memorability)."""
-    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.matching import SequenceConfig
     from memlog.selection.config import SelectionConfig
     from memlog.steps.evaluate import EvaluateConfig, evaluate
     from tests.stand_in import use_stand_in

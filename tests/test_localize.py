@@ -392,7 +392,7 @@ def test_localize_says_what_it_matched_frame_by_frame_once(nordland_maps: dict[s
     matcher returns it and does not log it too: the CLI showed it twice)."""
     import json
 
-    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.matching import SequenceConfig
     from memlog.steps.localize import LocalizeConfig, localize
     from tests.conftest import shared
 

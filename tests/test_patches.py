@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from memlog.descriptors.patches import GRID, PatchPCA, pair_scores, pool_patches
-from memlog.descriptors.sequence import SequenceConfig, SequenceMatch, rerank_by_patches
+from memlog.matching import SequenceConfig, SequenceMatch, rerank_by_patches
 from memlog.errors import DescriptorError
 
 

@@ -13,7 +13,7 @@ import pytest
 
 from memlog.descriptors.base import DescriptorMeta
 from memlog.descriptors.patches import GRID, PATCH_LAYER, PatchPCA, PatchPCAFitter, PatchStore, pair_scores, pool_patches
-from memlog.descriptors.sequence import RERANK_PLACES, SequenceConfig, match_tables
+from memlog.matching import RERANK_PLACES, SequenceConfig, match_tables
 from memlog.descriptors.table import DescriptorTable
 from memlog.errors import DescriptorError
 from memlog.outputs.descriptor_table import read_descriptors, write_descriptors

@@ -13,7 +13,7 @@ import pytest
 from memlog.descriptors.auto import AUTO_LEARNED, AUTO_SMALL, choose_descriptor, resolve_descriptor
 from memlog.descriptors.base import DescriptorMeta, check_compatible, l2_normalize
 from memlog.descriptors.registry import make_describer
-from memlog.descriptors.sequence import SequenceConfig
+from memlog.matching import SequenceConfig
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import (
     WhitenedDescriber,

@@ -1,6 +1,6 @@
 """How ``memlog evaluate`` matches the query drive against a map and scores it under both protocols.
 
-:class:`Matching` runs the one drive matcher (:func:`memlog.descriptors.sequence.match_tables`, what
+:class:`Matching` runs the one drive matcher (:func:`memlog.matching.match_tables`, what
 ``memlog localize`` calls) on a map given as its own descriptor table (read back from the map's
 Parquet) or as a mask of the reference drive's rows, and evaluates the result under the map-only and the
 paper protocol (:mod:`memlog.evaluation.metrics`); :func:`whitened` puts a drive's table in a map's
@@ -18,7 +18,7 @@ import numpy as np
 
 from memlog.descriptors.patches import PatchPCA
 from memlog.descriptors.search import time_per_query
-from memlog.descriptors.sequence import SequenceConfig, SequenceMatch, match_tables
+from memlog.matching import SequenceConfig, SequenceMatch, match_tables
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import Whitening
 from memlog.evaluation.metrics import Discarded, ProtocolResult, evaluate_map_only, evaluate_paper
@@ -34,7 +34,7 @@ def protocol_dict(r: ProtocolResult) -> dict[str, Any]:
 
 class Matching:
     """How the query drive is matched against a map: by the one drive matcher
-    (:func:`memlog.descriptors.sequence.match_tables`, what ``memlog localize`` calls), as
+    (:func:`memlog.matching.match_tables`, what ``memlog localize`` calls), as
     sequences (the default) or frame by frame. A map is a mask over the reference rows, or the
     map's own descriptor table as ``memlog map`` wrote it (``map_table``: read back from its
     Parquet, so what is measured is the file a user gets). ``ranked`` gives the best places with

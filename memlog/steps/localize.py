@@ -11,7 +11,7 @@ refused and described again. All query frames are matched together, in blocks
 (:mod:`memlog.descriptors.approx`; ``search`` picks, ``auto`` by map size and query count).
 
 **Sequences (on by default).** The query is a drive, so each frame is matched together with its
-neighbours (``sequence``: :class:`memlog.descriptors.sequence.SequenceConfig`, ``length`` frames
+neighbours (``sequence``: :class:`memlog.matching.SequenceConfig`, ``length`` frames
 before and after, or before only when ``causal``): the single-frame search gives each frame's
 best candidates, which vote for places along the map; the best places are scored exactly along
 a path at the best relative speed, and ranked by that score. The match table then gives, per
@@ -41,7 +41,7 @@ from memlog.descriptors.base import Describer, check_compatible
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import make_describer
 from memlog.descriptors.search import Database, QueryTiming, time_per_query
-from memlog.descriptors.sequence import SequenceConfig, has_positions, match_tables
+from memlog.matching import SequenceConfig, has_positions, match_tables
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import WhitenedDescriber
 from memlog.errors import ConfigError, DescriptorError
@@ -52,6 +52,7 @@ from memlog.io.records import ReadReport
 from memlog.outputs.descriptor_table import read_cached, read_descriptors, stored_dtype, write_descriptors
 from memlog.outputs.map_artefact import check_map_pair
 from memlog.outputs.matches import write_match_log, write_matches
+from memlog.settings import Flag, positive_int, setting
 from memlog.progress import info, warning
 from memlog.scoring.motion import recorded_still_distance
 from memlog.selection.segment import SEGMENT_DEFAULTS
@@ -65,10 +66,12 @@ class LocalizeConfig:
     how to search the map (``search``); how to match sequences (``sequence``; ``length`` 0:
     single frames); ``time_search``: also time the search separately (repeated; for benchmarks)."""
 
-    k: int = 5
+    k: int = setting(5, Flag(("-k",), "reference frames per query (default 5)", check=positive_int, default=5))
     window: FrameWindow = FrameWindow()
     search: SearchConfig = SearchConfig()
-    time_search: bool = False
+    time_search: bool = setting(False, Flag(
+        ("--time-search",), "(experimental) also time the exact search of the whole map separately (repeated, "
+        "batched and one query at a time)", "experimental", action="store_true"))
     sequence: SequenceConfig = SequenceConfig()
 
     def __post_init__(self) -> None:
@@ -249,7 +252,7 @@ def _sequence_record(found: dict[str, Any], cfg: SequenceConfig) -> dict[str, An
             "runs", "max_gap_s", "sequence_queries", "single_queries", "fallback", "fallback_reasons", "stops",
             "standing_rows", "rerank", "hmm")
     out = {"asked": cfg.to_dict(), "length": cfg.length, "mode": "causal" if cfg.causal else "offline",
-           "candidates": cfg.candidates, "path": cfg.path, **{k: found.get(k) for k in keys}}
+           "candidates": cfg.candidates, "path": cfg.experimental.path, **{k: found.get(k) for k in keys}}
     if not cfg.enabled:
         out["mode"] = "single frames"
     return out

@@ -7,9 +7,9 @@ crawls and speeds up a window that straddles a change of speed scores the wrong 
 and then. Consecutive frames of a drive are not independent: the place of the next frame lies a
 little further along the map. :func:`place_probabilities` therefore decides every frame's place
 with its neighbours', as a hidden Markov model over each query run
-(:func:`memlog.descriptors.sequence.match_tables` ranks the places by it):
+(:func:`memlog.matching.match_tables` ranks the places by it):
 
-* **states**: the frame's candidate places (map rows, at most :data:`memlog.descriptors.sequence.RERANK_PLACES`);
+* **states**: the frame's candidate places (map rows, at most :data:`memlog.matching.RERANK_PLACES`);
 * **emissions**: ``beta`` times the place's re-rank score (mean patch pairs along its path);
 * **transitions**: between a place at coordinate ``x`` for one frame and ``x'`` for the next, the
   query having moved ``dq``: the speed ``(x' - x) / dq`` may lie between 0 and ``vmax`` (the

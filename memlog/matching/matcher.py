@@ -1,0 +1,116 @@
+"""The drive matcher (:func:`match_tables`): a query log's descriptor table against a map's, as
+``memlog localize`` and ``memlog evaluate`` run it: coordinates, runs, sequences, the patch re-rank and
+the drive HMM."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import numpy.typing as npt
+
+from memlog.descriptors.table import DescriptorTable
+from memlog.matching.config import F32, F64, I64, SequenceConfig, SequenceMatch
+from memlog.matching.coordinates import _topic_groups, drive_coordinates, drive_pace, drive_runs, reference_unit, resolve_coordinate, standing_rows, uses_stops
+from memlog.matching.paths import _run_bounds
+from memlog.matching.rerank import RERANK_PLACES, _patch_plan, _ranked_by, rerank_by_patches
+from memlog.matching.sequences import _median_step, match_sequences
+from memlog.matching.drive_hmm import place_probabilities
+
+if TYPE_CHECKING:
+    from memlog.descriptors.approx import IVFIndex
+
+__all__ = ["match_tables"]
+
+
+
+def match_tables(
+    query: DescriptorTable,
+    reference: DescriptorTable,
+    config: SequenceConfig | None = None,
+    *,
+    k: int = 5,
+    index: IVFIndex | None = None,
+    nprobe: int | None = None,
+    rerank: int | None = None,
+    ref_mask: npt.ArrayLike | None = None,
+) -> SequenceMatch:
+    """The drive matcher: :func:`match_sequences` for two descriptor tables (a query log and a
+    map), what ``memlog localize``, ``memlog evaluate`` and the benchmarks all call. The
+    coordinate is resolved (:func:`resolve_coordinate`), the query is cut into runs
+    (:func:`drive_runs`) and put in drive order per topic; the map is cut into runs the same way
+    (its topics, recording gaps and frames out of order), each run's coordinates far from the
+    others' so no path crosses from one to the next; the reference frame spacing comes from the
+    map's frame indices (so a sparse map's gaps are known). ``ref_mask``: the map is these rows of
+    ``reference`` (returned rows are rows of the whole table). Results are in the query table's
+    row order."""
+    cfg = config or SequenceConfig()
+    coordinate, note = resolve_coordinate(cfg.coordinate, query, reference)
+    stops = uses_stops(cfg, coordinate)
+    qc = drive_coordinates(query, coordinate, stops)
+    labels, gap = drive_runs(query, cfg.max_gap_s)
+    standing = standing_rows(query, labels) if stops else None
+    # query rows topic by topic (a run never mixes topics), each in table order
+    perm = np.concatenate(_topic_groups(query)) if len(query) else np.zeros(0, np.int64)
+    rc = drive_coordinates(reference, coordinate, stops)
+    unit = reference_unit(reference, rc)
+    ref_runs, _gap = drive_runs(reference, cfg.max_gap_s)
+    if len(rc) and ref_runs.max() > 0:  # several runs (cameras, recording gaps): far apart
+        span = float(rc.max() - rc.min()) + 1.0
+        rc = rc + ref_runs * 4.0 * span
+    pace = drive_pace(query, reference) if coordinate == "frames" else 1.0
+    query, why_not = _patch_plan(cfg, query, reference)
+    places = max(k, RERANK_PLACES) if why_not is None else k
+    res = match_sequences(query.descriptors[perm], qc[perm], index.db if index is not None else reference.descriptors,
+                          rc, cfg, k=places, runs=labels[perm], ref_unit=unit, coordinate=coordinate, index=index,
+                          nprobe=nprobe, rerank=rerank, standing=None if standing is None else standing[perm],
+                          ref_mask=None if index is not None else ref_mask, pace=pace)
+    if why_not is None:
+        assert query.patches is not None and reference.patches is not None and reference.patch_pca is not None
+        map_rows = (np.flatnonzero(np.asarray(ref_mask, dtype=bool)) if ref_mask is not None
+                    else np.arange(len(reference), dtype=np.int64))
+        res = rerank_by_patches(res, query.descriptors[perm], reference.descriptors, query.patches[perm],
+                                reference.patches, qc[perm], rc, map_rows, labels[perm], cfg, places, unit)
+        res.info["rerank"] = {"by": "patches", "places": places, "patch_pca": reference.patch_pca.sha256}
+        if cfg.hmm and cfg.enabled:
+            res = _along_drive(res, query.descriptors[perm], reference.descriptors, qc[perm], rc, labels[perm],
+                               _median_step(np.sort(rc[map_rows])), unit, cfg)
+        else:
+            res.info["hmm"] = {"off": "turned off (--no-hmm)" if cfg.enabled else "single frames"}
+        res = res.top(k)
+    else:
+        res.info["rerank"] = {"off": why_not}
+        res.info["hmm"] = {"off": "no re-rank: the drive HMM decides between re-ranked places"}
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(len(perm))
+    res = res.take(inv)
+    res.info["coordinate_note"] = note
+    res.info["max_gap_s"] = gap
+    res.info["stops"] = stops
+    res.info["map_runs"] = int(ref_runs.max()) + 1 if len(ref_runs) else 0
+    res.info.setdefault("standing_rows", 0)
+    return res
+
+
+
+
+def _along_drive(res: SequenceMatch, q_desc: F32, r_desc: F32, qc: F64, rc: F64, labels: I64, spacing: float,
+                 unit: float, cfg: SequenceConfig) -> SequenceMatch:
+    """``res`` (query rows in drive order, each with its re-ranked places) with every row's places
+    ranked by their probability along the drive (:mod:`memlog.matching.drive_hmm`): the margin
+    becomes the best place's probability minus the best other place's; a standing row takes its
+    stop's first row's places."""
+    assert res.rerank is not None
+    score = np.where(res.indices >= 0, np.nan_to_num(res.rerank, nan=0.0), -np.inf)
+    x = np.where(res.indices >= 0, rc[np.maximum(res.indices, 0)], 0.0)
+    speeds = res.info.get("speeds")
+    pace = float(res.info.get("pace") or 1.0)
+    lo, hi = _run_bounds(labels, qc)
+    post, owner = place_probabilities(score, x, qc, lo, hi, pace=pace, spacing=spacing,
+                                      vmax=float(speeds[1]) if speeds else 3.0 * pace, causal=cfg.causal)
+    res = res.take(owner)
+    res.posterior = post[owner]
+    res.info = {**res.info, "hmm": {"posterior": "filtered" if cfg.causal else "forward-backward",
+                                    "standing_rows": int((owner != np.arange(len(owner))).sum())}}
+    return _ranked_by(res, np.where(res.indices >= 0, res.posterior, -np.inf), q_desc, r_desc, rc,
+                      cfg.exclude * unit)

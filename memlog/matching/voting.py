@@ -1,0 +1,107 @@
+"""Voting: the single-frame candidates of a window's frames vote for the places (and speeds) its path may
+take; the best-voted places are scored exactly and ranked into a query's result."""
+
+from __future__ import annotations
+
+
+import numpy as np
+
+from memlog.matching.config import BoolArray, F64, I64, TOP_VOTES
+from memlog.matching.coordinates import _nearest
+from memlog.matching.paths import _Problem, _on_map
+
+__all__: list[str] = []
+
+
+
+def _votes(p: _Problem, centres: I64, offs: I64, cand: I64, gain: F64, n_places: int) -> tuple[I64, I64]:
+    """The best-voted places of each centre: ``(places [B, n_places], speed index [B, n_places])``,
+    sorted map rows (-1 = none), distinct by ``p.excl`` (greedy non-maximum suppression, best
+    first), each with the speed that voted for it most."""
+    b = len(centres)
+    m = p.rc.shape[0]
+    nv = len(p.speeds)
+    places = np.full((b, n_places), -1, dtype=np.int64)
+    speeds = np.zeros((b, n_places), dtype=np.int64)
+    t = centres[:, None] + offs[None, :]
+    valid = (t >= p.run_lo[centres][:, None]) & (t < p.run_hi[centres][:, None])
+    bi, oi = np.nonzero(valid)
+    tv = t[bi, oi]
+    dv = p.qc[tv] - p.qc[centres[bi]]
+    cr = cand[tv]  # [n, K] sorted map rows, -1 = none
+    g = gain[tv]
+    rr, cc = np.nonzero((cr >= 0) & (g > 0))
+    if not len(rr):
+        return places, speeds
+    vs = np.arange(nv, dtype=np.int64)
+    x = p.rc[cr[rr, cc]][:, None] - p.speeds[vs][None, :] * dv[rr][:, None]  # [votes, V]: the centre they imply
+    on_map = _on_map(p, x)  # a centre beyond the map's ends has no frame to vote for (never clipped onto one)
+    key = (bi[rr][:, None].astype(np.int64) * m + _nearest(p.rc, x)) * nv + vs[None, :]
+    key = key[on_map]
+    wv = np.exp2(-p.prior(p.speeds))  # the speed prior weighs each speed's vote as it weighs its score
+    val = (g[rr, cc][:, None] * wv[None, :])[on_map]
+    if not len(key):
+        return places, speeds
+    order = np.argsort(key, kind="stable")
+    key, val = key[order], val[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(key)) + 1]
+    sums = np.add.reduceat(val, starts)  # per (centre, place, speed)
+    place = key[starts] // nv
+    vidx = key[starts] % nv
+    pstarts = np.r_[0, np.flatnonzero(np.diff(place)) + 1]
+    seg = np.repeat(np.arange(len(pstarts)), np.diff(np.r_[pstarts, len(place)]))
+    best = np.maximum.reduceat(sums, pstarts)
+    is_best = np.flatnonzero(sums == best[seg])
+    _u, first_best = np.unique(seg[is_best], return_index=True)
+    best_v = vidx[is_best[first_best]]
+    place = place[pstarts]
+    cb, row = place // m, place % m
+    order = np.lexsort((row, -best, cb))
+    cb, row, best_v = cb[order], row[order], best_v[order]
+    first = np.searchsorted(cb, np.arange(b))
+    last = np.searchsorted(cb, np.arange(b), side="right")
+    for j in range(b):
+        top = range(first[j], min(last[j], first[j] + TOP_VOTES))
+        n = 0
+        for e in top:
+            x0 = p.rc[row[e]]
+            if all(abs(x0 - p.rc[places[j, s]]) > p.excl for s in range(n)):
+                places[j, n] = row[e]
+                speeds[j, n] = best_v[e]
+                n += 1
+                if n == n_places:
+                    break
+    return places, speeds
+
+
+
+
+def _place(p: _Problem, i: int, sc: F64, xc: F64, sp: F64, w: int, k: int, indices: I64, scores: F64,
+           margin: F64, speed: F64, window: I64, seq: BoolArray) -> None:
+    """Write query ``i``'s result from its scored centres (in vote order): the first
+    ``places`` (:data:`EXACT_PLACES` by default) ranked by score, then the others ranked by score (so the best match does
+    not depend on ``k``), each reported as the map frame nearest it; a centre, or its reported
+    frame, within ``p.excl`` of a better one's is the same place (left out); the margin is the best
+    score minus the next place's."""
+    good = np.flatnonzero(np.isfinite(sc))
+    if not len(good):
+        return
+    late = (good >= p.cfg.experimental.places).astype(np.int64)
+    order = good[np.lexsort((xc[good], -sc[good], late))]
+    kept: list[int] = []
+    rows: list[int] = []
+    for e in order:
+        r = int(_nearest(p.rc, np.array([xc[e]]))[0])
+        if any(abs(xc[e] - xc[f]) <= p.excl or abs(p.rc[r] - p.rc[g]) <= p.excl for f, g in zip(kept, rows)):
+            continue
+        kept.append(int(e))
+        rows.append(r)
+    n = min(k, len(kept))
+    indices[i] = -1
+    scores[i] = -np.inf
+    indices[i, :n] = p.full_row[rows[:n]]
+    scores[i, :n] = sc[kept[:n]]
+    margin[i] = sc[kept[0]] - sc[kept[1]] if len(kept) > 1 else np.nan
+    speed[i] = sp[kept[0]]
+    window[i] = w
+    seq[i] = True
