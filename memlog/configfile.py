@@ -135,6 +135,12 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
         return tuple(items) if origin is tuple else items
     if tp is Any:
         return value
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):  # a nested config: a table of its settings
+        if isinstance(value, tp):
+            return value
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}: expected a table of settings, got {value!r} ({type(value).__name__})")
+        return build(tp, value, where)
     if tp is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{where}: expected true or false, got {value!r} ({type(value).__name__})")

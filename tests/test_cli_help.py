@@ -392,3 +392,86 @@ def test_top_level_help_names_the_groups(capsys: pytest.CaptureFixture[str], mon
         main(["--help"])
     assert exc.value.code == 0
     assert "sequence matching, scoring, performance, experimental" in " ".join(capsys.readouterr().out.split())
+
+
+#: The configs whose settings each command takes from the command line (issue 41: flags are generated from
+#: the settings declared on these configs' fields, :mod:`memlog.settings`).
+def _configs() -> dict[str, list[type]]:
+    from memlog.descriptors.approx import SearchConfig
+    from memlog.matching import Experimental, SequenceConfig
+    from memlog.scoring.config import ScoreConfig
+    from memlog.selection.config import SelectionConfig
+    from memlog.steps.batch import BatchConfig
+    from memlog.steps.evaluate import EvaluateConfig
+    from memlog.steps.localize import LocalizeConfig
+    from memlog.steps.map import MapConfig
+
+    return {"score": [ScoreConfig], "map": [ScoreConfig, SelectionConfig, MapConfig],
+            "batch": [ScoreConfig, SelectionConfig, BatchConfig, MapConfig],  # batch's --workers: BatchConfig's
+            "localize": [LocalizeConfig, SearchConfig, SequenceConfig, Experimental],
+            "evaluate": [ScoreConfig, SelectionConfig, EvaluateConfig, SequenceConfig, Experimental]}
+
+
+#: Each command's flags that are not settings of a config: what is read and written, the config file and
+#: preset, the frames' window, and how the run itself behaves.
+NOT_SETTINGS = {
+    "score": {"-q", "-o", "--config", "--preset", "--max-pixels", "-t", "--start", "--end", "--stride", "--workers"},
+    "map": {"-q", "-o", "--config", "--preset", "--max-pixels", "--scores", "--json"},
+    "batch": {"-q", "-o", "--config", "--preset", "--max-pixels", "--manifest", "--summary"},
+    "localize": {"-q", "-o", "--map", "--annotate", "--query-descriptors", "--json", "--max-pixels", "-t",
+                 "--start", "--end", "--stride"},
+    "evaluate": {"-q", "-o", "--config", "--preset", "--max-pixels", "--reference", "--query", "--truth", "--start",
+                 "--end", "--stride"},
+}
+
+
+#: Settings a command does not take from its command line (`map --maps`: the annotated log's images).
+SKIPPED = {"map": {"--maps"}, "batch": {"--maps", "--descriptors"}, "evaluate": {"--maps"}}
+
+
+@pytest.mark.parametrize("name", sorted(NOT_SETTINGS))
+def test_every_setting_flag_comes_from_its_config_field(name: str) -> None:
+    from memlog.settings import setting_flags
+
+    declared: dict[str, Any] = {}
+    for cls in _configs()[name]:
+        for _field, flag in setting_flags(cls):
+            declared.setdefault(flag.names[0], flag)
+    p = _subparsers()[name]
+    seen = set()
+    for a in p._actions:
+        if isinstance(a, argparse._HelpAction) or not a.option_strings:
+            continue
+        first = a.option_strings[0]
+        seen.add(first)
+        if first in NOT_SETTINGS[name]:
+            assert first not in declared, f"{name} {first}: declared as a setting, added by hand too"
+            continue
+        flag = declared.get(first)
+        assert flag is not None, f"{name} {first}: not declared on a config field (memlog.settings.setting)"
+        assert (a.help, a.dest, tuple(a.option_strings)) == (flag.help, flag.key, flag.names), f"{name} {first}"
+    missing = set(declared) - seen - SKIPPED.get(name, set())
+    assert not missing, f"{name}: declared settings without a flag: {sorted(missing)}"
+
+
+def test_the_flags_copy_into_the_configs() -> None:
+    """A command line's settings reach the config through the declarations (each flag's value rule)."""
+    from memlog.cli.commands import batch_config, evaluate_config, map_config, sequence_config
+
+    parser = build_parser()
+    m = map_config(parser.parse_args(["map", "a.mcap", "-o", "m.mcap", "--no-whiten", "--keep-topic", "/gps",
+                                      "--descriptor", "none", "--jpeg-quality", "70", "--fast", "--mt", "0.3",
+                                      "--keep-fraction", "0.5", "--no-refine"]))
+    assert (m.whiten, m.keep_topics, m.descriptor, m.jpeg_quality) == (False, ("/gps",), None, 70)
+    assert (m.score.mode, m.score.mt, m.score.fast_refine, m.select.keep_fraction) == ("fast", 0.3, False, 0.5)
+    b = batch_config(parser.parse_args(["batch", "a.mcap", "-o", "out", "--ray", "auto", "--workers", "3",
+                                        "--no-resume"]))
+    assert (b.ray, b.ray_address, b.workers, b.map.workers, b.resume) == (True, "auto", 3, 3, False)
+    local = batch_config(parser.parse_args(["batch", "a.mcap", "-o", "out", "--ray"]))
+    assert (local.ray, local.ray_address) == (True, None)
+    s = sequence_config(parser.parse_args(["localize", "m.parquet", "q.mcap", "-o", "x.parquet", "--keep-stops",
+                                           "--no-hmm", "--sequence-path", "dp", "--speeds", "0.5:2"]))
+    assert (s.stops, s.hmm, s.rerank, s.experimental.path, s.speeds) == (False, False, True, "dp", (0.5, 2.0))
+    e = evaluate_config(parser.parse_args(["evaluate", "--reference", "r.mcap", "--query", "q.mcap", "-o", "o",
+                                           "--tolerance", "10", "--no-report", "--sequence", "5"]))
+    assert (e.tol_m, e.report, e.sequence.length, e.whiten) == (10.0, False, 5, True)

@@ -11,7 +11,7 @@ import argparse
 import json
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -20,29 +20,22 @@ from memlog.cli.flags import (
     FlagGroups,
     add_config_flag,
     add_max_pixels,
-    add_score_flags,
-    add_select_flags,
-    add_selection_flags,
+    add_setting_flags,
     add_window_flags,
-    count_or_all,
     file_section,
     frame_window,
-    int_range,
     log_time,
-    nonneg_float,
-    nonneg_int,
     positive_int,
-    positive_float,
-    ray_address,
     score_config,
     selection_config,
-    speed_range,
+    setting_values,
+    with_flags,
 )
 from memlog.configfile import build
-from memlog.descriptors.sequence import SequenceConfig
 from memlog.errors import ConfigError
 from memlog.progress import info
-from memlog.selection.config import DEFAULT_CANDIDATES
+from memlog.scoring.config import CONFIGS, ScoreConfig
+from memlog.selection.config import SelectionConfig
 
 __all__ = ["COMMANDS"]
 
@@ -212,15 +205,20 @@ def add_score(sub: Any) -> None:
                    help="output .mcap; with several logs an existing directory, receiving NAME.scored.mcap per log")
     add_config_flag(p)
     add_window_flags(groups["inputs"])
-    groups["outputs"].add_argument("--maps", action="store_true", help="also write the three maps as images")
-
-    def workers(g: argparse._ActionsContainer) -> None:
-        g.add_argument("--workers", type=positive_int, default=1, metavar="N",
-                       help="worker processes scoring chunks of frames (each with its share of the cores); the "
-                            "output is the same as with one")
-
-    add_score_flags(groups, workers)
+    groups["performance"].add_argument(
+        "--workers", type=positive_int, default=1, metavar="N",
+        help="worker processes scoring chunks of frames (each with its share of the cores); the output is the same "
+             "as with one")
+    _add_score_settings(groups)
     p.set_defaults(func=cmd_score)
+
+
+def _add_score_settings(groups: FlagGroups, *, skip: tuple[str, ...] = ()) -> None:
+    """--preset and the scoring settings' flags (``skip``: those the command does not take), then --max-pixels."""
+    groups["scoring"].add_argument("--preset", choices=sorted(CONFIGS),
+                                   help="named scoring config (st-lucia: the paper's lowered thresholds)")
+    add_setting_flags(groups, ScoreConfig, skip=skip)
+    add_max_pixels(groups["performance"])
 
 
 def _score_outputs(logs: list[str], output: str) -> list[str]:
@@ -293,104 +291,38 @@ def add_map(sub: Any) -> None:
     p.add_argument("-o", "--output", required=True, metavar="OUT.mcap", help="map .mcap (its directory must exist)")
     p.add_argument("--scores", metavar="SCORED.mcap",
                    help="annotated MCAP of this log from `memlog score` to reuse instead of scoring again")
-    add_select_flags(p)
-    add_config_flag(p)
-    out = groups["outputs"]
-    out.add_argument("--descriptors", metavar="PATH", help="descriptor Parquet path (default: OUT.parquet)")
-    out.add_argument("--json", action="store_true", help="print the map summary as JSON")
-
-    def workers(g: argparse._ActionsContainer) -> None:
-        g.add_argument("--workers", type=positive_int, metavar="N", help="worker processes scoring frames (default 1)")
-
-    _add_map_settings(groups, workers)
+    groups["outputs"].add_argument("--json", action="store_true", help="print the map summary as JSON")
+    _add_map_settings(groups)
     p.set_defaults(func=cmd_map)
 
 
-def _add_map_settings(groups: FlagGroups, workers: Callable[[argparse._ActionsContainer], None]) -> None:
-    """The map step's flags (``memlog map`` and ``memlog batch``) but for --select and
-    --keep-fraction; ``workers`` adds the command's first performance flags."""
-    inputs = groups["inputs"]
-    inputs.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC",
-                        help="camera topic(s) to map (repeatable; default: every camera topic)")
-    inputs.add_argument("--stride", type=positive_int, metavar="N",
-                        help="consider every n-th frame of each topic (default 1)")
-    inputs.add_argument("--position-topic", metavar="TOPIC",
-                        help="NavSatFix/pose/odometry topic for positions (default: first found)")
-    out = groups["outputs"]
-    out.add_argument("--keep-topic", action="append", metavar="TOPIC",
-                     help="copy this topic whole into the map (GPS, odometry...; repeatable)")
-    out.add_argument("--image-format", choices=["jpeg", "png"], help="encoding of raw frames (default jpeg)")
-    out.add_argument("--jpeg-quality", type=int_range(1, 100), metavar="Q",
-                     help="JPEG quality of raw frames, 1..100 (default 90)")
-    out.add_argument("--descriptor", metavar="KIND",
-                     help="reference descriptor: auto (default: by frame size), a kind (thumbnail, dinov2-gem, ...) "
-                          "or none")
-    out.add_argument("--descriptor-dtype", choices=["float32", "float16"],
-                     help="storage of the descriptors (default float32; float16 halves the file)")
-    out.add_argument("--no-whiten", action="store_true",
-                     help="do not fit and store a PCA-whitening of the descriptors (default: whitened)")
-    out.add_argument("--whiten-dim", type=positive_int, metavar="D",
-                     help="largest whitened dimension (default 512; never more than half the frames)")
-    out.add_argument("--whiten-on", choices=["kept", "drive"],
-                     help="frames the whitening is fitted on: kept (default; the network describes the kept frames "
-                          "only) or drive (every frame, each described: slower)")
-    add_selection_flags(groups)
-    _add_candidates(groups["selection"])
-    add_score_flags(groups, workers)
-    groups["scoring"].add_argument(
-        "--score-kept", action="store_true", default=None,
-        help="also run ResMem (25 crops) on a segment's only candidate to record its memorability; by default it "
-             "is not run where it would choose nothing (--candidates 1): the kept frame's record has ms null and "
-             "its bounds")
+def _add_map_settings(groups: FlagGroups, *, skip: tuple[str, ...] = ()) -> None:
+    """The map step's flags (``memlog map`` and ``memlog batch``): selection, the map's settings but
+    ``skip``, --config, and scoring."""
+    add_setting_flags(groups, SelectionConfig)
+    add_config_flag(groups.common)
+    from memlog.steps.map import MapConfig
+
+    add_setting_flags(groups, MapConfig, skip=skip)
+    _add_score_settings(groups, skip=("maps",))
 
 
-def _add_candidates(g: argparse._ActionsContainer, evaluate: bool = False) -> None:
-    """--candidates: the shortlist ResMem runs on within a segment (``map``, ``batch``, ``evaluate``)."""
-    if evaluate:
-        text = ("the memorable map is the one `memlog map --candidates K` writes (default %(default_k)s)"
-                % {"default_k": DEFAULT_CANDIDATES})
-    else:
-        text = ("segment selection: run ResMem on at most K frames per segment, the best by staticity and entropy "
-                "spread over the segment (approximate; default %(default_k)s, see docs/defaults.md); "
-                "'all': exactly the frames that can still win, which keeps the same frames as scoring every frame"
-                % {"default_k": DEFAULT_CANDIDATES})
-    g.add_argument("--candidates", type=count_or_all, metavar="K|all", help=text)
+def _check_candidates(flags: dict[str, Any], select: SelectionConfig) -> None:
+    if "candidates" in flags and select.mode != "segment":
+        raise ConfigError(f"--candidates applies to segment selection only, not --select {select.mode}")
 
 
 def map_config(args: argparse.Namespace) -> Any:
     """The map step's config: the file's [map] table, then flags (scoring and selection included)."""
-    from memlog.descriptors.registry import DESCRIBERS
     from memlog.steps.map import MapConfig
 
     score = score_config(args)
     select = selection_config(args, score)
-    section = file_section(args, "map")
     where = f"{args.config}: [map]" if getattr(args, "config", None) else "[map]"
-    cfg = build(MapConfig, section, where, MapConfig(score=score, select=select))
-    flags: dict[str, Any] = {}
-    if args.topics:
-        flags["topics"] = tuple(args.topics)
-    if args.keep_topic:
-        flags["keep_topics"] = tuple(args.keep_topic)
-    for key in ("position_topic", "image_format", "jpeg_quality", "descriptors", "descriptor_dtype", "stride", "workers",
-                "candidates", "score_kept"):
-        v = getattr(args, key, None)
-        if v is not None:
-            flags["descriptors_path" if key == "descriptors" else key] = v
-    if getattr(args, "candidates", None) is not None and select.mode != "segment":
-        raise ConfigError(f"--candidates applies to segment selection only, not --select {select.mode}")
-    if args.descriptor is not None:
-        if args.descriptor not in ("none", "auto") and args.descriptor not in DESCRIBERS:
-            raise ConfigError(f"--descriptor: unknown descriptor {args.descriptor!r} "
-                              f"(known: auto, {', '.join(sorted(DESCRIBERS))}, none)")
-        flags["descriptor"] = None if args.descriptor == "none" else args.descriptor
-    if args.no_whiten:
-        flags["whiten"] = False
-    if args.whiten_dim is not None:
-        flags["whiten_dim"] = args.whiten_dim
-    if args.whiten_on is not None:
-        flags["whiten_on"] = args.whiten_on
-    return build(MapConfig, flags, "flags", cfg) if flags else cfg
+    cfg = build(MapConfig, file_section(args, "map"), where, MapConfig(score=score, select=select))
+    flags = setting_values(args, MapConfig)
+    _check_candidates(flags, select)
+    return with_flags(MapConfig, flags, cfg)
 
 
 def cmd_map(args: argparse.Namespace) -> int:
@@ -444,28 +376,12 @@ def add_batch(sub: Any) -> None:
                    help="output directory (created when its parent exists)")
     p.add_argument("--manifest", metavar="FILE",
                    help="text file listing more logs, one path per line (relative to the file; # comments)")
-    p.add_argument("--ray", nargs="?", const="local", type=ray_address, metavar="ADDRESS",
-                   help="run the jobs on Ray (needs memlog[ray]): the cluster at ADDRESS (auto, ray://HOST:10001, "
-                        "HOST:6379), else $RAY_ADDRESS or a new local Ray instance")
-    add_select_flags(p)
-    add_config_flag(p)
     out = groups["outputs"]
     out.add_argument("--summary", metavar="FILE", help="JSON summary (default OUTDIR/batch.json; resume reads it)")
-    out.add_argument("--no-resume", action="store_true", help="score and map every log, even those up to date")
+    from memlog.steps.batch import BatchConfig
 
-    def workers(g: argparse._ActionsContainer) -> None:
-        g.add_argument("--workers", type=positive_int, metavar="N",
-                       help="local worker processes (default: the cores); with --ray, Ray actors (default: as many "
-                            "as the cluster's nodes hold, each by its own CPUs and GPUs)")
-        g.add_argument("--actors-per-gpu", type=positive_int, metavar="N",
-                       help="with --ray on GPUs: actors sharing one GPU (default: the node's CPUs per GPU / "
-                            "--threads, at most 16)")
-        g.add_argument("--max-retries", type=nonneg_int, metavar="N",
-                       help="attempts at a job after its worker died (default 3)")
-        g.add_argument("--logs-at-once", type=positive_int, metavar="N",
-                       help="logs worked on at the same time, sharing the workers (default 1)")
-
-    _add_map_settings(groups, workers)
+    add_setting_flags(groups, BatchConfig)
+    _add_map_settings(groups, skip=("workers", "descriptors_path"))
     p.set_defaults(func=cmd_batch, descriptors=None)
 
 
@@ -480,16 +396,7 @@ def batch_config(args: argparse.Namespace) -> Any:
     if "map" in section:
         raise ConfigError(f"{where}: map settings go in the [map] table (and [score], [select])")
     cfg = build(BatchConfig, section, where, BatchConfig(map=mcfg))
-    flags: dict[str, Any] = {}
-    if args.ray is not None:
-        flags["ray"] = True
-        flags["ray_address"] = None if args.ray == "local" else args.ray
-    for key in ("workers", "actors_per_gpu", "max_retries", "logs_at_once"):
-        if getattr(args, key) is not None:
-            flags[key] = getattr(args, key)
-    if args.no_resume:
-        flags["resume"] = False
-    return _with_flags(BatchConfig, flags, cfg)
+    return with_flags(BatchConfig, setting_values(args, BatchConfig), cfg)
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
@@ -531,108 +438,54 @@ def add_localize(sub: Any) -> None:
                    help="the map log the descriptors were written with: checked (both files record each other's "
                         "sha256) before any work, an error when the Parquet does not belong to it")
     p.add_argument("--annotate", metavar="OUT.mcap", help="also write the query log with a T/memlog/match channel")
-    p.add_argument("-k", type=positive_int, default=5, help="reference frames per query (default 5)")
+    from memlog.descriptors.approx import SearchConfig
+    from memlog.steps.localize import LocalizeConfig
+
+    add_setting_flags(groups, LocalizeConfig)
     add_window_flags(groups["inputs"], "localize")
     out = groups["outputs"]
     out.add_argument("--query-descriptors", metavar="PATH",
                      help="cache query descriptors here (reused only when made from the same query log and window)")
     out.add_argument("--json", action="store_true", help="print a JSON summary")
     add_sequence_flags(groups)
-    perf = groups["performance"]
-    perf.add_argument("--search", choices=["auto", "exact", "ivf"], default="auto",
-                      help="exact search, or ivf: an approximate FAISS index (needs memlog[faiss]); auto (default): "
-                           "ivf for maps of >= 100,000 frames with >= 4 x nlist query frames when FAISS is installed")
-    perf.add_argument("--nlist", type=positive_int, metavar="N",
-                      help="ivf: cells of the index (default: ~4 sqrt(map frames))")
-    perf.add_argument("--nprobe", type=positive_int, metavar="N",
-                      help="ivf: cells scanned per query (default: nlist / 64, >= 16)")
-    add_max_pixels(perf)
-    groups["experimental"].add_argument(
-        "--time-search", action="store_true",
-        help="(experimental) also time the exact search of the whole map separately (repeated, batched and one "
-             "query at a time)")
+    add_setting_flags(groups, SearchConfig)
+    add_max_pixels(groups["performance"])
     p.set_defaults(func=cmd_localize)
-
-
-SEQUENCE_DEFAULTS = SequenceConfig()
 
 
 def add_sequence_flags(groups: FlagGroups) -> None:
     """How a query drive is matched as sequences (``localize``, ``evaluate``)."""
-    g = groups["sequence matching"]
-    g.add_argument("--sequence", type=nonneg_int, metavar="N",
-                   help="match each query frame together with the N frames before and after it (default 10); 0: "
-                        "single frames. A single image or unordered frames are matched frame by frame")
-    g.add_argument("--causal", action="store_true",
-                   help="use only past frames: the N frames before each query frame and the frame itself (a robot "
-                        "localizing live)")
-    g.add_argument("--speeds", type=speed_range, metavar="MIN:MAX",
-                   help="relative speeds searched, map coordinate per query coordinate (default: 1/3 to 3 times the "
-                        "drives' pace, i.e. 1 at one frame rate, else the ratio of their frame intervals; positions: "
-                        "0.8:1.25)")
-    g.add_argument("--sequence-k", type=positive_int, metavar="K",
-                   help="candidates per query frame from the single-frame search that vote for places (default "
-                        f"{SEQUENCE_DEFAULTS.candidates})")
-    g.add_argument("--speed-prior", type=nonneg_float, metavar="P",
-                   help="a path's score loses P per doubling or halving of its speed against the map's "
-                        f"(default {SEQUENCE_DEFAULTS.speed_prior:g}; 0: every speed of --speeds alike)")
-    g.add_argument("--no-rerank", dest="no_rerank", action="store_true",
-                   help="keep the order of the descriptor match (default: each query's best places are re-ranked by "
-                        "the map's stored patch features, and the confidence is the re-rank's margin)")
-    g.add_argument("--no-hmm", dest="no_hmm", action="store_true",
-                   help="decide each query frame's place from its own re-ranked places alone (default: the drive's "
-                        "most likely path through every frame's re-ranked places decides, an HMM over each run; the "
-                        "confidence is the place's probability minus the best other place's)")
-    g.add_argument("--coordinate", choices=["auto", "frames", "time", "positions"],
-                   help="what sequences follow: frame indices, stamps, or distance along both logs' positions "
-                        "(default auto: positions when both logs have them, else frames)")
-    g.add_argument("--max-gap", type=positive_float, metavar="S",
-                   help="a gap of more than S seconds between query stamps starts a new run (sequences never cross "
-                        "one; default: 10 x the median frame interval)")
-    g.add_argument("--keep-stops", action="store_true",
-                   help="match along the frame index as recorded, every frame on its own (default: where the camera "
-                        "stood still (from the log's odometry, twist or GNSS when it knows every frame, else from the "
-                        "images), the stop counts as one place and its frames take the "
-                        "match of its first frame; the query's stops are found as the map recorded its own; "
-                        "frames coordinate only)")
-    groups["experimental"].add_argument(
-        "--sequence-path", choices=["constant", "dp"],
-        help="(experimental) constant speed over the window (default), or dp: a path whose speed may change inside "
-             "it")
+    from memlog.matching import Experimental, SequenceConfig
 
-
-_SEQUENCE_FLAGS = {"causal": "--causal", "speeds": "--speeds", "sequence_k": "--sequence-k",
-                   "speed_prior": "--speed-prior",
-                   "coordinate": "--coordinate", "sequence_path": "--sequence-path", "max_gap": "--max-gap",
-                   "keep_stops": "--keep-stops"}
+    add_setting_flags(groups, SequenceConfig)
+    add_setting_flags(groups, Experimental)
 
 
 def sequence_config(args: argparse.Namespace) -> Any:
     """The SequenceConfig of the localize flags; flags that need a sequence with ``--sequence 0``
     are a usage error."""
-    from memlog.descriptors.sequence import SequenceConfig
+    from memlog.matching import Experimental, SequenceConfig
+    from memlog.settings import setting_flags
 
-    given = [flag for dest, flag in _SEQUENCE_FLAGS.items() if getattr(args, dest, None) not in (None, False)]
-    kw: dict[str, Any] = {"rerank": False} if getattr(args, "no_rerank", False) else {}
-    if getattr(args, "no_hmm", False):
-        kw["hmm"] = False
-    if args.sequence == 0 and given:
-        raise ConfigError(f"{', '.join(given)} set(s) how sequences are matched, but --sequence 0 matches single "
+    values = setting_values(args, SequenceConfig)
+    experimental = setting_values(args, Experimental)
+    shaping = [flag.name for cls, given in ((SequenceConfig, values), (Experimental, experimental))
+               for name, flag in setting_flags(cls) if name in given and name not in ("length", "rerank", "hmm")]
+    if values.get("length") == 0 and shaping:
+        raise ConfigError(f"{', '.join(shaping)} set(s) how sequences are matched, but --sequence 0 matches single "
                           "frames")
-    for key, dest in (("length", "sequence"), ("speeds", "speeds"), ("candidates", "sequence_k"),
-                      ("coordinate", "coordinate"), ("path", "sequence_path"), ("max_gap_s", "max_gap"),
-                      ("speed_prior", "speed_prior")):
-        v = getattr(args, dest, None)
-        if v is not None:
-            kw[key] = v
-    if args.causal:
-        kw["causal"] = True
-    if getattr(args, "keep_stops", False):
-        kw["stops"] = False
     try:
-        return SequenceConfig(**kw)
+        if experimental:
+            values["experimental"] = Experimental(**experimental)
+        return SequenceConfig(**values)
     except ConfigError as exc:
         raise ConfigError(f"--sequence: {exc}") from None
+
+
+def _sequence_given(args: argparse.Namespace) -> bool:
+    from memlog.matching import Experimental, SequenceConfig
+
+    return bool(setting_values(args, SequenceConfig) or setting_values(args, Experimental))
 
 
 def cmd_localize(args: argparse.Namespace) -> int:
@@ -643,12 +496,12 @@ def cmd_localize(args: argparse.Namespace) -> int:
     from memlog.descriptors.approx import SearchConfig
 
     try:
-        search = SearchConfig(args.search, args.nlist, args.nprobe)
+        search = SearchConfig(**setting_values(args, SearchConfig))
     except ConfigError as exc:
         raise ConfigError(f"--search {args.search}: {exc}") from None
     seq = sequence_config(args)
-    cfg = LocalizeConfig(k=args.k, window=frame_window(args, args.query), search=search,
-                         time_search=args.time_search, sequence=seq)
+    cfg = LocalizeConfig(window=frame_window(args, args.query), search=search, sequence=seq,
+                         **setting_values(args, LocalizeConfig))
     res = localize(args.map, args.query, args.output, cfg, annotate=args.annotate,
                    query_descriptors=args.query_descriptors, map_log=args.map_log)
     t = res.timing_map.seconds_per_query
@@ -691,39 +544,19 @@ def add_evaluate(sub: Any) -> None:
                    help="output directory (created; its parent must exist)")
     p.add_argument("--truth", metavar="FILE", help='JSON with "matches": [[reference frame indices] per query frame]; '
                                                    "default: positions of both logs within --tolerance")
-    p.add_argument("--tolerance", type=nonneg_float, metavar="M", help="position truth: metres (default 25)")
-    add_select_flags(p)
+    from memlog.steps.evaluate import EvaluateConfig
+
+    add_setting_flags(groups, EvaluateConfig)
+    add_setting_flags(groups, SelectionConfig)
     add_config_flag(p)
     inputs = groups["inputs"]
-    inputs.add_argument("--reference-topic", metavar="TOPIC", help="reference camera topic (default: the first)")
-    inputs.add_argument("--query-topic", metavar="TOPIC", help="query camera topic (default: the first)")
     inputs.add_argument("--start", type=log_time, metavar="TIME",
                         help="first log time: seconds since the epoch, or +seconds after each log starts")
     inputs.add_argument("--end", type=log_time, metavar="TIME", help="end of the window (exclusive), same forms")
     inputs.add_argument("--stride", type=positive_int, default=1, metavar="N",
                         help="every n-th frame of each drive (default 1)")
-    inputs.add_argument("--max-frames", type=positive_int, metavar="N", help="at most this many frames of each drive")
-    groups["outputs"].add_argument("--no-report", action="store_true",
-                                   help="skip the HTML report (an older one in OUTDIR is removed)")
-    cmp = groups["comparisons"]
-    cmp.add_argument("--descriptor", metavar="KIND[,KIND...]",
-                     help="auto (default: by frame size), a kind (thumbnail, dinov2-gem, ...), or several "
-                          "comma-separated (each described once and cached; one table)")
-    cmp.add_argument("--no-whiten", action="store_true", help="evaluate unwhitened maps (default: whitened)")
-    cmp.add_argument("--whiten-on", choices=["kept", "drive"],
-                     help="frames the map's whitening is fitted on, as memlog map --whiten-on (default kept)")
-    cmp.add_argument("--seeds", type=positive_int, metavar="N", help="random baseline seeds (default 20)")
-    cmp.add_argument("--compare-exact", action="store_true",
-                     help="also evaluate the exact selection (every reference frame's memorability scored; slower)")
-    add_selection_flags(groups)
-    _add_candidates(groups["selection"], evaluate=True)
     add_sequence_flags(groups)
-    add_score_flags(groups)
-    groups["experimental"].add_argument(
-        "--paper-discarded", choices=["false_negative", "true_negative", "uncovered_negative"],
-        help="(experimental) paper protocol: how a query whose best match was discarded counts (default "
-             "false_negative; true_negative drops it from the positives; uncovered_negative drops the queries with "
-             "no true place in the map instead)")
+    _add_score_settings(groups, skip=("maps",))
     p.set_defaults(func=cmd_evaluate)
 
 
@@ -735,39 +568,14 @@ def evaluate_config(args: argparse.Namespace) -> Any:
     select = selection_config(args, score)
     where = f"{args.config}: [evaluate]" if getattr(args, "config", None) else "[evaluate]"
     cfg = build(EvaluateConfig, file_section(args, "evaluate"), where, EvaluateConfig(score=score, select=select))
-    flags: dict[str, Any] = {}
-    for key, dest in (("descriptor", "descriptor"), ("whiten_on", "whiten_on"), ("tol_m", "tolerance"), ("seeds", "seeds"),
-                      ("paper_discarded", "paper_discarded"), ("reference_topic", "reference_topic"),
-                      ("query_topic", "query_topic")):
-        v = getattr(args, dest)
-        if v is not None:
-            flags[key] = v
-    if args.no_report:
-        flags["report"] = False
-    if args.no_whiten:
-        flags["whiten"] = False
-    if args.compare_exact:
-        flags["compare_exact"] = True
-    if args.max_frames is not None:
-        flags["max_frames"] = args.max_frames
-    if args.candidates is not None:
-        if select.mode != "segment":
-            raise ConfigError(f"--candidates applies to segment selection only, not --select {select.mode}")
-        flags["candidates"] = args.candidates
-    if any(getattr(args, d, None) not in (None, False) for d in ("sequence", "no_rerank", "no_hmm", *_SEQUENCE_FLAGS)):
+    flags = setting_values(args, EvaluateConfig)
+    _check_candidates(flags, select)
+    if _sequence_given(args):
         flags["sequence"] = sequence_config(args)
     if args.start is not None or args.end is not None or args.stride != 1:
         flags["window"] = frame_window(args, args.reference)
         flags["query_window"] = frame_window(args, args.query)
-    return _with_flags(EvaluateConfig, flags, cfg)
-
-
-def _with_flags(cls: Any, flags: dict[str, Any], cfg: Any) -> Any:
-    """``cfg`` with the settings given by flags (a bad value is a usage error naming its flag)."""
-    try:
-        return build(cls, flags, "flags", cfg) if flags else cfg
-    except ConfigError as exc:
-        raise ConfigError("--" + str(exc).removeprefix("flags: ")) from None
+    return with_flags(EvaluateConfig, flags, cfg)
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:

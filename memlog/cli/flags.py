@@ -5,156 +5,41 @@ work), the flag groups several subcommands share, and the builders that turn fla
 from __future__ import annotations
 
 import argparse
-import math
 import re
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Collection
+from typing import Any, TypeVar
 
 from memlog.configfile import build, config_section, read_config_file
 from memlog.errors import ConfigError
 from memlog.io.base import FrameWindow
 from memlog.progress import info
-from memlog.scoring.config import CONFIGS, ScoreConfig, load_config
+from memlog.scoring.config import ScoreConfig, load_config
 from memlog.selection.config import SelectionConfig
+from memlog.settings import (
+    count_or_all,
+    cosine_distance,
+    fraction,
+    int_range,
+    log_time,
+    nonneg_float,
+    nonneg_int,
+    open_unit_interval,
+    positive_float,
+    positive_int,
+    ray_address,
+    setting_flags,
+    speed_range,
+    unit_interval,
+)
+
+T = TypeVar("T")
 
 __all__ = [
-    "unit_interval", "fraction", "positive_float", "nonneg_float", "positive_int", "nonneg_int", "int_range",
-    "cosine_distance", "speed_range", "log_time", "ray_address", "GROUPS", "FlagGroups", "add_config_flag",
-    "add_score_flags", "add_max_pixels", "add_window_flags", "add_select_flags", "add_selection_flags",
-    "score_config", "selection_config", "frame_window", "file_section", "setting_names_to_flags",
+    "unit_interval", "open_unit_interval", "fraction", "positive_float", "nonneg_float", "positive_int",
+    "nonneg_int", "count_or_all", "int_range", "cosine_distance", "speed_range", "log_time", "ray_address", "GROUPS",
+    "FlagGroups", "add_config_flag", "add_max_pixels", "add_window_flags", "add_setting_flags", "setting_values",
+    "with_flags", "score_config", "selection_config", "frame_window", "file_section", "setting_names_to_flags",
 ]
-
-
-# -- value checks (argparse ``type=`` functions: argparse names the flag in the message) ----------
-def _number(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-    return v
-
-
-def _integer(text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-
-
-def unit_interval(text: str) -> float:
-    """A number in [0, 1] (thresholds)."""
-    v = _number(text)
-    if not 0.0 <= v <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be within [0, 1], got {text}")
-    return v
-
-
-def open_unit_interval(text: str) -> float:
-    """A number in (0, 1) (distances that must neither be 0 nor cover everything)."""
-    v = _number(text)
-    if not 0.0 < v < 1.0:
-        raise argparse.ArgumentTypeError(f"must be in (0, 1), got {text}")
-    return v
-
-
-def fraction(text: str) -> float:
-    """A number in (0, 1] (keep fractions)."""
-    v = _number(text)
-    if not 0.0 < v <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be in (0, 1], got {text}")
-    return v
-
-
-def positive_float(text: str) -> float:
-    v = _number(text)
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return v
-
-
-def nonneg_float(text: str) -> float:
-    v = _number(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return v
-
-
-def positive_int(text: str) -> int:
-    v = _integer(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text}")
-    return v
-
-
-def count_or_all(text: str) -> int | str:
-    """A whole number >= 1, or ``all``."""
-    if text.strip().lower() == "all":
-        return "all"
-    return positive_int(text)
-
-
-def nonneg_int(text: str) -> int:
-    v = _integer(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 0, got {text}")
-    return v
-
-
-def int_range(low: int, high: int) -> Callable[[str], int]:
-    """A whole number in [low, high]."""
-    def check(text: str) -> int:
-        v = _integer(text)
-        if not low <= v <= high:
-            raise argparse.ArgumentTypeError(f"must be a whole number in {low}..{high}, got {text}")
-        return v
-
-    return check
-
-
-def speed_range(text: str) -> tuple[float, float]:
-    """``MIN:MAX`` relative speeds, 0 <= MIN <= MAX (one number: that speed only)."""
-    parts = text.split(":")
-    if len(parts) > 2:
-        raise argparse.ArgumentTypeError(f"expected MIN:MAX (e.g. 0:3), got {text!r}")
-    lo, hi = (_number(parts[0]), _number(parts[-1]))
-    if lo < 0 or hi < lo:
-        raise argparse.ArgumentTypeError(f"must be MIN:MAX with 0 <= MIN <= MAX, got {text!r}")
-    return lo, hi
-
-
-def cosine_distance(text: str) -> float:
-    """A cosine distance in (0, 2]."""
-    v = _number(text)
-    if not 0.0 < v <= 2.0:
-        raise argparse.ArgumentTypeError(f"must be a cosine distance in (0, 2], got {text}")
-    return v
-
-
-_RAY_ADDRESS = re.compile(r"^(auto|local|ray://\S+|[\w.-]+:\d+|\[[0-9A-Fa-f:]+\]:\d+)$")
-
-
-def ray_address(text: str) -> str:
-    """A Ray cluster address: ``auto``, ``ray://HOST:PORT``, ``HOST:PORT`` (``local``: a new
-    local instance)."""
-    if not _RAY_ADDRESS.match(text):
-        raise argparse.ArgumentTypeError(
-            f"expected auto, ray://HOST:PORT or HOST:PORT, got {text!r} (for a local Ray instance, put --ray after "
-            "the logs or before another flag)")
-    return text
-
-
-_TIME = re.compile(r"^\+?\d+(\.\d*)?$|^\+?\.\d+$")
-
-
-def log_time(text: str) -> str:
-    """``SECONDS`` since the epoch, or ``+SECONDS`` after the log's first message (resolved
-    against the log by :func:`frame_window`)."""
-    if not _TIME.match(text.strip()):
-        raise argparse.ArgumentTypeError(
-            f"expected seconds since the epoch (1403715273.5) or +seconds after the log starts (+30), got {text!r}")
-    return text.strip()
 
 
 def _resolve_time(text: str | None, log_start_ns: Callable[[], int | None], flag: str) -> int | None:
@@ -230,48 +115,6 @@ def add_config_flag(g: argparse._ActionsContainer) -> None:
                         "flags override it")
 
 
-def add_score_flags(groups: FlagGroups, workers: Callable[[argparse._ActionsContainer], None] | None = None) -> None:
-    """The scoring flags: thresholds (scoring), speed (performance; ``workers`` adds the command's
-    --workers first), reference switches (experimental)."""
-    g = groups["scoring"]
-    g.add_argument("--preset", choices=sorted(CONFIGS),
-                   help="named scoring config (st-lucia: the paper's lowered thresholds)")
-    g.add_argument("--mt", type=unit_interval, help="memorability threshold MT (default 0.5)")
-    g.add_argument("--st", type=unit_interval, help="staticity threshold ST (default 0.6)")
-    g.add_argument("--et", type=unit_interval, help="entropy threshold ET (default 0.4)")
-    g.add_argument("--all-scores", action="store_true", default=None,
-                   help="compute every score of every frame, even after it fails (for sweeps and reports)")
-    perf = groups["performance"]
-    if workers is not None:
-        workers(perf)
-    fast = perf.add_argument("--fast", dest="mode", action="store_const", const="fast",
-                             help="int8 memorability surrogate, fp32 only for frames near MT: exact mode's decisions "
-                                  "within the surrogate's measured error (needs `memlog models prepare resmem-int8`)")
-    perf.add_argument("--no-refine", dest="fast_refine", action="store_false", default=None,
-                      help="with --fast: the int8 estimate decides every frame alone (faster near MT; decisions "
-                           "within its error of MT may differ from exact mode)")
-    perf.add_argument("--duplicates", choices=["identical", "near", "off"],
-                      help="frames that repeat the previous one share its scoring (the record names the frame it "
-                           "copies): identical = pixel-identical frames only (default, exact); near = also frames "
-                           "within --near-distance on the thumbnail (approximate, only with --fast); off")
-    perf.add_argument("--near-distance", type=open_unit_interval, metavar="D",
-                      help="--duplicates near: largest cosine distance between the 64x32 thumbnails of a frame and "
-                           "the previous one (default 0.01)")
-    perf.add_argument("--threads", type=nonneg_int, metavar="N",
-                      help="ONNX Runtime threads per process (default 0: every core)")
-    perf.add_argument("--device", choices=["auto", "cpu", "cuda"],
-                      help="where the models run (default auto: a CUDA GPU when onnxruntime-gpu sees one, else the "
-                           "CPU)")
-    add_max_pixels(perf)
-    exp = groups["experimental"]
-    literal = exp.add_argument("--paper-literal", dest="mode", action="store_const", const="paper",
-                               help="(experimental) the literal pipeline: scikit-image entropy, all crops, no early "
-                                    "exit (slow; a reference for measurements; not with --fast)")
-    exp.add_argument("--normalize", choices=["all", "static"],
-                     help="(experimental) divide MS/ES by all pixels (the paper, default) or by static pixels only")
-    groups.exclusive(fast, literal)
-
-
 def add_window_flags(g: argparse._ActionsContainer, what: str = "score") -> None:
     """-t, --start, --end, --stride: the frames a command reads."""
     g.add_argument("-t", "--topic", action="append", dest="topics", metavar="TOPIC",
@@ -283,51 +126,62 @@ def add_window_flags(g: argparse._ActionsContainer, what: str = "score") -> None
                    help="every n-th frame of each topic (default 1)")
 
 
-def add_select_flags(g: argparse._ActionsContainer) -> None:
-    """--select and --keep-fraction: how much of the drive the map keeps (shown first by ``map``)."""
-    g.add_argument("--select", choices=["paper", "segment"],
-                   help="segment (default): the best frame of each place segment by the three scores, so no "
-                        "stretch of the drive is lost; paper: the frames passing MT/ST/ET")
-    g.add_argument("--keep-fraction", type=fraction, metavar="F",
-                   help="keep about this fraction of the frames: segment size (segment, default 0.25) or "
-                        "thresholds (paper)")
+def add_setting_flags(groups: FlagGroups, cls: type[Any], *, skip: Collection[str] = ()) -> None:
+    """The flags of the config dataclass ``cls``'s settings (:mod:`memlog.settings`), each in its group;
+    ``skip``: settings this command does not take from the command line. Two flags that set one
+    setting to different constants (``--fast``, ``--paper-literal``) exclude each other."""
+    consts: dict[str, list[argparse.Action]] = {}
+    for name, flag in setting_flags(cls):
+        if name in skip:
+            continue
+        where = groups.common if flag.group == "common" else groups[flag.group]
+        action = where.add_argument(*flag.names, **flag.argparse_kwargs())
+        if flag.action == "store_const":
+            consts.setdefault(name, []).append(action)
+    for actions in consts.values():
+        if len(actions) > 1:
+            groups.exclusive(*actions)
 
 
-def add_selection_flags(groups: FlagGroups) -> None:
-    """The rest of frame selection (selection), and distinctiveness (experimental)."""
-    g = groups["selection"]
-    g.add_argument("--spacing-m", type=positive_float, metavar="M",
-                   help="segment: one frame per this many metres travelled")
-    g.add_argument("--spacing-s", type=positive_float, metavar="S", help="segment: one frame per this many seconds")
-    g.add_argument("--segment-by", choices=["auto", "distance", "time", "count", "view"], help="segment boundaries")
-    g.add_argument("--dedup", type=cosine_distance, metavar="DIST",
-                   help="drop kept frames within this cosine distance (thumbnail descriptor) of an already kept one "
-                        "(loops, stops)")
-    exp = groups["experimental"]
-    exp.add_argument("--dt", type=unit_interval,
-                     help="(experimental) paper mode: also keep only frames whose distinctiveness (rank in the "
-                          "drive, 0..1) is >= DT (computed from the reference drive's descriptors; off: it did not "
-                          "beat uniform maps)")
-    exp.add_argument("--distinct-weight", type=nonneg_float, metavar="W",
-                     help="(experimental) segment mode: weight of distinctiveness in the combined score (0 = off; "
-                          "with weights = [0, 0, 0] in the --config file's [select] table it selects by "
-                          "distinctiveness alone)")
+def setting_values(args: argparse.Namespace, cls: type[Any], *, skip: Collection[str] = ()) -> dict[str, Any]:
+    """The settings of ``cls`` the command line gave, as the config's keywords (each flag's
+    :attr:`~memlog.settings.Flag.value` applied, its :attr:`~memlog.settings.Flag.also` added)."""
+    out: dict[str, Any] = {}
+    for name, flag in setting_flags(cls):
+        if name in skip:
+            continue
+        v = getattr(args, flag.key, None)
+        if flag.given(v):
+            out[name] = flag.setting(v)
+            out.update(flag.also or {})
+    return out
 
 
 # -- builders -------------------------------------------------------------------------------------
-_FLAG_OF = {
-    "keep_fraction": "--keep-fraction", "spacing_m": "--spacing-m", "spacing_s": "--spacing-s",
-    "segment_by": "--segment-by", "dedup": "--dedup", "select mode": "--select", "segment selection mode":
-    "--select segment", "stride": "--stride", "jpeg_quality": "--jpeg-quality", "threads": "--threads",
-    "image_format": "--image-format", "tolerance": "--tolerance", "seeds": "--seeds", "dt": "--dt",
-    "distinct_weight": "--distinct-weight", "near_distance": "--near-distance", "duplicates": "--duplicates",
-    "max_frames": "--max-frames", "whiten_dim": "--whiten-dim", "whiten_on": "--whiten-on",
-}
+def _flag_names() -> dict[str, str]:
+    """Setting name -> the flag that sets it, over every config the CLI builds (a name two configs give
+    different flags is left out: ambiguous), and the phrases selection errors use."""
+    from memlog.descriptors.approx import SearchConfig
+    from memlog.matching import Experimental, SequenceConfig
+    from memlog.steps.batch import BatchConfig
+    from memlog.steps.evaluate import EvaluateConfig
+    from memlog.steps.localize import LocalizeConfig
+    from memlog.steps.map import MapConfig
+
+    names: dict[str, set[str]] = {}
+    for cls in (ScoreConfig, SelectionConfig, MapConfig, EvaluateConfig, LocalizeConfig, SearchConfig, SequenceConfig,
+                Experimental, BatchConfig):
+        for name, flag in setting_flags(cls):
+            if flag.action != "store_const":
+                names.setdefault(name, set()).add(flag.name)
+    out = {name: next(iter(flags)) for name, flags in names.items() if len(flags) == 1}
+    out.update({"select mode": "--select", "segment selection mode": "--select segment"})
+    return out
 
 
 def setting_names_to_flags(message: str) -> str:
     """A config error message with setting names replaced by the flags that set them."""
-    for name, flag in sorted(_FLAG_OF.items(), key=lambda kv: -len(kv[0])):
+    for name, flag in sorted(_flag_names().items(), key=lambda kv: -len(kv[0])):
         message = re.sub(rf"(?<![\w-]){re.escape(name)}(?![\w-])", flag, message)
     return message
 
@@ -340,15 +194,19 @@ def file_section(args: argparse.Namespace, name: str) -> dict[str, Any]:
     return config_section(read_config_file(path), name, str(path))
 
 
+def with_flags(cls: type[T], values: dict[str, Any], base: T) -> T:
+    """``base`` (a config of ``cls``) with the settings the command line gave (``values``,
+    :func:`setting_values`); a value the config refuses is a usage error naming its flag."""
+    try:
+        return build(cls, values, "flags", base) if values else base
+    except ConfigError as exc:
+        raise ConfigError(setting_names_to_flags(str(exc).removeprefix("flags: "))) from None
+
+
 def score_config(args: argparse.Namespace) -> ScoreConfig:
     """The scoring config: preset, then the file's [score] table, then flags."""
-    return load_config(
-        getattr(args, "preset", None), getattr(args, "config", None), mt=args.mt, st=args.st, et=args.et,
-        all_scores=args.all_scores, mode=getattr(args, "mode", None), normalize=args.normalize,
-        threads=args.threads, fast_refine=getattr(args, "fast_refine", None), device=getattr(args, "device", None),
-        maps=getattr(args, "maps", None) or None, duplicates=getattr(args, "duplicates", None),
-        near_distance=getattr(args, "near_distance", None),
-    )
+    return load_config(getattr(args, "preset", None), getattr(args, "config", None),
+                       **setting_values(args, ScoreConfig))
 
 
 def selection_config(args: argparse.Namespace, score: ScoreConfig) -> SelectionConfig:
@@ -357,19 +215,10 @@ def selection_config(args: argparse.Namespace, score: ScoreConfig) -> SelectionC
     base = SelectionConfig(mt=score.mt, st=score.st, et=score.et)
     where = f"{args.config}: [select]" if getattr(args, "config", None) else "[select]"
     cfg = build(SelectionConfig, file_section(args, "select"), where, base)
-    flags: dict[str, Any] = {}
-    for key, dest in (("mode", "select"), ("keep_fraction", "keep_fraction"), ("spacing_m", "spacing_m"),
-                      ("spacing_s", "spacing_s"), ("segment_by", "segment_by"), ("dedup", "dedup"), ("dt", "dt"),
-                      ("distinct_weight", "distinct_weight")):
-        v = getattr(args, dest, None)
-        if v is not None:
-            flags[key] = v
+    flags = setting_values(args, SelectionConfig)
     if flags.get("spacing_m") is not None or flags.get("spacing_s") is not None:
         flags.setdefault("keep_fraction", None)  # a spacing flag replaces a keep fraction from the file
-    try:
-        cfg = build(SelectionConfig, flags, "flags", cfg) if flags else cfg
-    except ConfigError as exc:
-        raise ConfigError(setting_names_to_flags(str(exc).removeprefix("flags: "))) from None
+    cfg = with_flags(SelectionConfig, flags, cfg)
     if cfg.mode == "segment" and any(getattr(args, k, None) is not None for k in ("mt", "st", "et")):
         info("note: --select segment keeps the best frame of each place segment; --mt/--st/--et only set "
              "the paper rule recorded with each frame's scores (use --select paper to select by them)")

@@ -28,6 +28,7 @@ from memlog.configfile import check_ints
 from memlog.descriptors.search import F32, I64, Database, _best, _empty, _queries, _rescore
 from memlog.errors import ConfigError, DescriptorError
 from memlog.progress import info
+from memlog.settings import Flag, positive_int, setting
 
 __all__ = ["SEARCH_METHODS", "AUTO_MIN_FRAMES", "SearchConfig", "IVFIndex", "choose", "faiss_module",
            "default_nlist", "default_nprobe"]
@@ -64,9 +65,14 @@ class SearchConfig:
     """How to search the map: ``method`` auto | exact | ivf; IVF ``nlist``/``nprobe``/``rerank``
     (None: the defaults for the map's size)."""
 
-    method: str = "auto"
-    nlist: int | None = None
-    nprobe: int | None = None
+    method: str = setting("auto", Flag(
+        ("--search",), "exact search, or ivf: an approximate FAISS index (needs memlog[faiss]); auto (default): ivf "
+        "for maps of >= 100,000 frames with >= 4 x nlist query frames when FAISS is installed", "performance",
+        choices=SEARCH_METHODS, default="auto"))
+    nlist: int | None = setting(None, Flag(("--nlist",), "ivf: cells of the index (default: ~4 sqrt(map frames))",
+                                           "performance", positive_int, metavar="N"))
+    nprobe: int | None = setting(None, Flag(("--nprobe",), "ivf: cells scanned per query (default: nlist / 64, "
+                                            ">= 16)", "performance", positive_int, metavar="N"))
     rerank: int | None = None
 
     def __post_init__(self) -> None:

@@ -14,6 +14,7 @@ from typing import Any, Literal
 
 from memlog.configfile import build, check_ints, config_section, read_config_file
 from memlog.errors import ConfigError
+from memlog.settings import Flag, nonneg_int, open_unit_interval, setting, unit_interval
 
 __all__ = ["ScoreConfig", "CONFIGS", "load_config", "config_from_json", "DYNAMIC_CLASS_NAMES"]
 
@@ -40,23 +41,49 @@ class ScoreConfig:
     (needed for sweeps).
     """
 
-    mt: float = 0.5
-    st: float = 0.6
-    et: float = 0.4
+    mt: float = setting(0.5, Flag(("--mt",), "memorability threshold MT (default 0.5)", "scoring",
+                                  unit_interval))
+    st: float = setting(0.6, Flag(("--st",), "staticity threshold ST (default 0.6)", "scoring", unit_interval))
+    et: float = setting(0.4, Flag(("--et",), "entropy threshold ET (default 0.4)", "scoring", unit_interval))
     det_conf: float = 0.55
     det_min_area: float = 0.05
     dynamic_classes: tuple[str, ...] = DYNAMIC_CLASS_NAMES
     entropy_radius: int = 5
-    normalize: Literal["all", "static"] = "all"
-    mode: Literal["exact", "paper", "fast"] = "exact"
-    all_scores: bool = False
+    normalize: Literal["all", "static"] = setting("all", Flag(
+        ("--normalize",), "(experimental) divide MS/ES by all pixels (the paper, default) or by static pixels only",
+        "experimental", choices=("all", "static")))
+    mode: Literal["exact", "paper", "fast"] = setting(
+        "exact",
+        Flag(("--fast",), "int8 memorability surrogate, fp32 only for frames near MT: exact mode's decisions within "
+             "the surrogate's measured error (needs `memlog models prepare resmem-int8`)", "performance",
+             action="store_const", dest="mode", const="fast"),
+        Flag(("--paper-literal",), "(experimental) the literal pipeline: scikit-image entropy, all crops, no early "
+             "exit (slow; a reference for measurements; not with --fast)", "experimental", action="store_const",
+             dest="mode", const="paper"))
+    all_scores: bool = setting(False, Flag(
+        ("--all-scores",), "compute every score of every frame, even after it fails (for sweeps and reports)",
+        "scoring", action="store_true", default=None))
     crop_batch: int = 5
-    fast_refine: bool = True  # fast mode: rescore frames within the int8 error of MT with fp32
-    threads: int = 0  # onnxruntime intra-op threads; 0 = all cores
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    maps: bool = False
-    duplicates: Literal["identical", "near", "off"] = "identical"
-    near_distance: float = 0.01
+    fast_refine: bool = setting(True, Flag(  # fast mode: rescore frames within the int8 error of MT with fp32
+        ("--no-refine",), "with --fast: the int8 estimate decides every frame alone (faster near MT; decisions "
+        "within its error of MT may differ from exact mode)", "performance", action="store_false",
+        dest="fast_refine", default=None))
+    threads: int = setting(0, Flag(  # onnxruntime intra-op threads; 0 = all cores
+        ("--threads",), "ONNX Runtime threads per process (default 0: every core)", "performance", nonneg_int,
+        metavar="N"))
+    device: Literal["auto", "cpu", "cuda"] = setting("auto", Flag(
+        ("--device",), "where the models run (default auto: a CUDA GPU when onnxruntime-gpu sees one, else the CPU)",
+        "performance", choices=("auto", "cpu", "cuda")))
+    maps: bool = setting(False, Flag(("--maps",), "also write the three maps as images", "outputs",
+                                     action="store_true"))
+    duplicates: Literal["identical", "near", "off"] = setting("identical", Flag(
+        ("--duplicates",), "frames that repeat the previous one share its scoring (the record names the frame it "
+        "copies): identical = pixel-identical frames only (default, exact); near = also frames within "
+        "--near-distance on the thumbnail (approximate, only with --fast); off", "performance",
+        choices=("identical", "near", "off")))
+    near_distance: float = setting(0.01, Flag(
+        ("--near-distance",), "--duplicates near: largest cosine distance between the 64x32 thumbnails of a frame "
+        "and the previous one (default 0.01)", "performance", open_unit_interval, metavar="D"))
 
     def __post_init__(self) -> None:
         for name in ("mt", "st", "et"):

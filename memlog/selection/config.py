@@ -11,6 +11,8 @@ from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
 from memlog.errors import ConfigError
+from memlog.settings import Flag, cosine_distance, nonneg_float, positive_float, setting, unit_interval
+from memlog.settings import fraction as a_fraction
 from memlog.selection._checks import finite_number, fraction, positive_number
 from memlog.selection.redundancy import RedundancyConfig
 from memlog.selection.segment import SEGMENT_DEFAULTS
@@ -49,15 +51,24 @@ class SelectionConfig:
     and as a distant part of the drive.
     """
 
-    mode: Literal["segment", "paper"] = "segment"
-    keep_fraction: float | None = None
+    mode: Literal["segment", "paper"] = setting("segment", Flag(
+        ("--select",), "segment (default): the best frame of each place segment by the three scores, so no stretch "
+        "of the drive is lost; paper: the frames passing MT/ST/ET", choices=("paper", "segment"), dest="select"))
+    keep_fraction: float | None = setting(None, Flag(
+        ("--keep-fraction",), "keep about this fraction of the frames: segment size (segment, default 0.25) or "
+        "thresholds (paper)", check=a_fraction, metavar="F"))
     mt: float = 0.5
     st: float = 0.6
     et: float = 0.4
-    spacing_m: float | None = None
-    spacing_s: float | None = None
-    segment_by: Literal["auto", "distance", "time", "count", "view"] = SEGMENT_DEFAULTS.by
-    dedup: float | None = None
+    spacing_m: float | None = setting(None, Flag(("--spacing-m",), "segment: one frame per this many metres "
+                                                 "travelled", "selection", positive_float, metavar="M"))
+    spacing_s: float | None = setting(None, Flag(("--spacing-s",), "segment: one frame per this many seconds",
+                                                 "selection", positive_float, metavar="S"))
+    segment_by: Literal["auto", "distance", "time", "count", "view"] = setting(SEGMENT_DEFAULTS.by, Flag(
+        ("--segment-by",), "segment boundaries", "selection", choices=("auto", "distance", "time", "count", "view")))
+    dedup: float | None = setting(None, Flag(
+        ("--dedup",), "drop kept frames within this cosine distance (thumbnail descriptor) of an already kept one "
+        "(loops, stops)", "selection", cosine_distance, metavar="DIST"))
     min_ms: float = SEGMENT_DEFAULTS.min_ms
     min_ss: float = SEGMENT_DEFAULTS.min_ss
     min_es: float = SEGMENT_DEFAULTS.min_es
@@ -66,8 +77,14 @@ class SelectionConfig:
     view_distance: float | None = None
     still_distance: float = SEGMENT_DEFAULTS.still_distance
     centre_tolerance: float = SEGMENT_DEFAULTS.centre_tolerance
-    dt: float | None = None
-    distinct_weight: float = SEGMENT_DEFAULTS.distinct_weight
+    dt: float | None = setting(None, Flag(
+        ("--dt",), "(experimental) paper mode: also keep only frames whose distinctiveness (rank in the drive, 0..1) "
+        "is >= DT (computed from the reference drive's descriptors; off: it did not beat uniform maps)",
+        "experimental", unit_interval))
+    distinct_weight: float = setting(SEGMENT_DEFAULTS.distinct_weight, Flag(
+        ("--distinct-weight",), "(experimental) segment mode: weight of distinctiveness in the combined score (0 = "
+        "off; with weights = [0, 0, 0] in the --config file's [select] table it selects by distinctiveness alone)",
+        "experimental", nonneg_float, metavar="W"))
     distinct_window: int = 2
     distinct_exclusion: int = 10
 

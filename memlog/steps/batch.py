@@ -48,6 +48,9 @@ from memlog.io.records import ReadReport
 from memlog.models.runtime import choose_providers
 from memlog.outputs.results import write_results
 from memlog.progress import Bar, info, redirect, warning
+from memlog.runtime import current
+from memlog.settings import Flag, nonneg_int, positive_int, setting
+from memlog.settings import ray_address as ray_address_check
 from memlog.steps.map import MapConfig, make_map
 from memlog.steps.parallel import Executor, InProcess, cpu_count, make_executor
 from memlog.steps.score import score
@@ -79,14 +82,25 @@ class BatchConfig:
     """
 
     map: MapConfig = field(default_factory=MapConfig)
-    workers: int | None = None
+    workers: int | None = setting(None, Flag(
+        ("--workers",), "local worker processes (default: the cores); with --ray, Ray actors (default: as many as "
+        "the cluster's nodes hold, each by its own CPUs and GPUs)", "performance", positive_int, metavar="N"))
     ray: bool = False
-    ray_address: str | None = None
-    actors_per_gpu: int | None = None
-    max_retries: int = 3
-    resume: bool = True
+    ray_address: str | None = setting(None, Flag(
+        ("--ray",), "run the jobs on Ray (needs memlog[ray]): the cluster at ADDRESS (auto, ray://HOST:10001, "
+        "HOST:6379), else $RAY_ADDRESS or a new local Ray instance", check=ray_address_check, nargs="?",
+        const="local", metavar="ADDRESS", value=lambda v: None if v == "local" else v, also={"ray": True}))
+    actors_per_gpu: int | None = setting(None, Flag(
+        ("--actors-per-gpu",), "with --ray on GPUs: actors sharing one GPU (default: the node's CPUs per GPU / "
+        "--threads, at most 16)", "performance", positive_int, metavar="N"))
+    max_retries: int = setting(3, Flag(("--max-retries",), "attempts at a job after its worker died (default 3)",
+                                       "performance", nonneg_int, metavar="N"))
+    resume: bool = setting(True, Flag(("--no-resume",), "score and map every log, even those up to date", "outputs",
+                                      action="store_true", value=lambda v: False))
     chunk_frames: int = 16
-    logs_at_once: int = 1
+    logs_at_once: int = setting(1, Flag(
+        ("--logs-at-once",), "logs worked on at the same time, sharing the workers (default 1)", "performance",
+        positive_int, metavar="N"))
 
     def __post_init__(self) -> None:
         check_ints(self, {"workers": 1, "actors_per_gpu": 1, "max_retries": 0, "chunk_frames": 1, "logs_at_once": 1},
@@ -542,7 +556,7 @@ def _run_one(r: LogResult, cfg: BatchConfig, window: FrameWindow, settings: str,
         r.worker_failures = 1
         executors.broken(ex)
     except Exception as exc:  # a bug: the other logs still run; the summary says what happened
-        if os.environ.get("MEMLOG_DEBUG"):
+        if current().debug:  # MEMLOG_DEBUG
             import traceback
 
             traceback.print_exc()

@@ -46,7 +46,7 @@ from memlog.descriptors.auto import AUTO, resolve_descriptor
 from memlog.descriptors.base import Describer
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import DESCRIBERS, make_describer
-from memlog.descriptors.sequence import SequenceConfig
+from memlog.matching import SequenceConfig
 from memlog.descriptors.table import DescriptorTable
 from memlog.errors import ConfigError, EvaluationError, MemlogError
 from memlog.evaluation.analysis import SWEEP_STEPS, contribution, local_positions, mean_std, position_truth, sweeps
@@ -65,6 +65,7 @@ from memlog.progress import info
 from memlog.scoring.config import ScoreConfig
 from memlog.selection import distance_uniform_mask, random_masks, uniform_mask
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
+from memlog.settings import Flag, count_or_all, nonneg_float, positive_int, setting
 from memlog.steps.map import Looks, MapConfig, MapResult, make_map, score_table, staged_stageable
 from memlog.steps.score import score
 from memlog.steps.score_cache import cached_staged_scores
@@ -95,22 +96,42 @@ class EvaluateConfig:
 
     score: ScoreConfig = field(default_factory=ScoreConfig)
     select: SelectionConfig = field(default_factory=SelectionConfig)
-    descriptor: str = AUTO
-    whiten: bool = True
-    whiten_on: Literal["kept", "drive"] = "kept"
+    descriptor: str = setting(AUTO, Flag(
+        ("--descriptor",), "auto (default: by frame size), a kind (thumbnail, dinov2-gem, ...), or several "
+        "comma-separated (each described once and cached; one table)", "comparisons", metavar="KIND[,KIND...]"))
+    whiten: bool = setting(True, Flag(("--no-whiten",), "evaluate unwhitened maps (default: whitened)",
+                                      "comparisons", action="store_true", value=lambda v: False))
+    whiten_on: Literal["kept", "drive"] = setting("kept", Flag(
+        ("--whiten-on",), "frames the map's whitening is fitted on, as memlog map --whiten-on (default kept)",
+        "comparisons", choices=("kept", "drive")))
     window: FrameWindow = FrameWindow()
     query_window: FrameWindow | None = None
-    max_frames: int | None = None
-    tol_m: float = 25.0
+    max_frames: int | None = setting(None, Flag(("--max-frames",), "at most this many frames of each drive",
+                                                "inputs", positive_int, metavar="N"))
+    tol_m: float = setting(25.0, Flag(("--tolerance",), "position truth: metres (default 25)", check=nonneg_float,
+                                      metavar="M"))
     k: int = 10
-    seeds: int = 20
-    paper_discarded: Literal["false_negative", "true_negative", "uncovered_negative"] = "false_negative"
-    reference_topic: str | None = None
-    query_topic: str | None = None
-    report: bool = True
-    candidates: int | Literal["all"] = DEFAULT_CANDIDATES
+    seeds: int = setting(20, Flag(("--seeds",), "random baseline seeds (default 20)", "comparisons", positive_int,
+                                  metavar="N"))
+    paper_discarded: Literal["false_negative", "true_negative", "uncovered_negative"] = setting(
+        "false_negative", Flag(
+            ("--paper-discarded",), "(experimental) paper protocol: how a query whose best match was discarded "
+            "counts (default false_negative; true_negative drops it from the positives; uncovered_negative drops the "
+            "queries with no true place in the map instead)", "experimental",
+            choices=("false_negative", "true_negative", "uncovered_negative")))
+    reference_topic: str | None = setting(None, Flag(
+        ("--reference-topic",), "reference camera topic (default: the first)", "inputs", metavar="TOPIC"))
+    query_topic: str | None = setting(None, Flag(("--query-topic",), "query camera topic (default: the first)",
+                                                 "inputs", metavar="TOPIC"))
+    report: bool = setting(True, Flag(("--no-report",), "skip the HTML report (an older one in OUTDIR is removed)",
+                                      "outputs", action="store_true", value=lambda v: False))
+    candidates: int | Literal["all"] = setting(DEFAULT_CANDIDATES, Flag(
+        ("--candidates",), "the memorable map is the one `memlog map --candidates K` writes (default "
+        f"{DEFAULT_CANDIDATES})", "selection", count_or_all, metavar="K|all"))
     sequence: SequenceConfig = SequenceConfig()
-    compare_exact: bool = False
+    compare_exact: bool = setting(False, Flag(
+        ("--compare-exact",), "also evaluate the exact selection (every reference frame's memorability scored; "
+        "slower)", "comparisons", action="store_true"))
 
     def __post_init__(self) -> None:
         if not isinstance(self.sequence, SequenceConfig):
@@ -327,6 +348,28 @@ def _check_truth_fits(truth: list[set[int]], source: str, n_query: int | None, n
         raise EvaluationError(f"--truth {source}: no query has a true match; every metric would be 0")
 
 
+@dataclass
+class _Run:
+    """One evaluation's inputs, checked, and what its steps share: the settings, both drives'
+    camera topics and windows, the output directory, the truth (frames, and where it came from),
+    the reference's score records and looks, and every read report."""
+
+    cfg: EvaluateConfig
+    score_cfg: ScoreConfig
+    reference: str
+    query: str
+    out: Path
+    ref_topic: str
+    q_topic: str
+    ref_window: FrameWindow
+    q_window: FrameWindow
+    truth: str | None
+    truth_frames: list[set[int]] | None
+    reports: list[ReadReport] = field(default_factory=list)
+    looks: Any = None
+    score_by_frame: dict[str, dict[int, dict[str, Any]]] = field(default_factory=dict)
+
+
 def evaluate(
     reference: str | os.PathLike[str],
     query: str | os.PathLike[str],
@@ -337,11 +380,58 @@ def evaluate(
 ) -> EvaluateResult:
     """Run the evaluation (see module doc); returns what is written to ``results.json``."""
     t_start = time.perf_counter()
-    cfg = config or EvaluateConfig()
-    score_cfg = cfg.score.replace(all_scores=True)
-    reference, query = str(reference), str(query)
+    run = _checked(str(reference), str(query), out_dir, config or EvaluateConfig(), truth)
+    cfg = run.cfg
+    with open_log(run.reference) as reader:
+        choices = [resolve_descriptor(name, reader, run.ref_topic) for name in cfg.descriptors]
+    kinds = list(dict.fromkeys(c.chosen for c in choices))
+    describers = {kind: make_describer(kind) for kind in kinds}
+    run.out.mkdir(exist_ok=True)  # (an earlier run's results.json stays until this run's replaces it)
+    _score_reference(run)
+    results: dict[str, Any] = {"memlog_version": __version__}
+    by_kind: dict[str, dict[str, Any]] = {}
+    main: tuple[Any, ...] | None = None
+    for choice in choices:
+        kind = choice.chosen
+        if kind in by_kind:
+            by_kind[kind].setdefault("requested_as", []).append(choice.requested)
+            continue
+        by_kind[kind], first = _evaluate_kind(run, choice, describers[kind], len(kinds) > 1)
+        main = main or first
+    assert main is not None
+    (choice, describer, ref_t, matching, truth_rows, table, sel, per_variant, map_res, truth_src) = main
+    first_kind = by_kind[choice.chosen]
+    for name in ("full", "memorable", "memorable_exact", "uniform", "uniform_distance", "random"):
+        if name in first_kind:
+            results[name] = first_kind[name]
+    results["matching"] = first_kind["matching"]
+    results["descriptor"] = choice.to_dict()
+    results["whitening"] = first_kind["whitening"]
+    results["descriptors"] = by_kind
+    _analyses(results, cfg, table, matching, truth_rows, sel, per_variant)
+    results["map_size"] = map_res.to_dict()
+    results["map_size"].pop("topics", None)
+    results["truth"] = truth_src
+    results["settings"] = _settings(run, describer)
+    results["seconds"] = round(time.perf_counter() - t_start, 1)
+    if cfg.report:
+        from memlog.outputs.report import write_report
+
+        write_report(run.out / "report.html", results, table, sel, per_variant, ref_t, run.reference, run.ref_topic,
+                     query=run.query, query_topic=run.q_topic, query_table=matching.q_t, truth=truth_rows)
+    else:
+        (run.out / "report.html").unlink(missing_ok=True)  # never leave an older report beside new results
+    write_results(run.out / "results.json", results)  # last: results.json is there only for a finished run
+    if map_res.report is not None:
+        run.reports.append(map_res.report)
+    return EvaluateResult(results, run.reports)
+
+
+def _checked(reference: str, query: str, out_dir: str | os.PathLike[str], cfg: EvaluateConfig,
+             truth: str | os.PathLike[str] | None) -> _Run:
+    """Everything a user can get wrong, checked before the reference is scored: the output
+    directory, the camera topics, the truth file and that it fits both drives, the windows."""
     out = check_output(out_dir, [reference, query] + ([truth] if truth else []), directory=True)
-    # everything a user can get wrong is checked before the reference is scored
     ref_topic, n_ref = _frame_counts(reference, cfg.reference_topic)
     q_topic, n_q = _frame_counts(query, cfg.query_topic)
     truth_frames: list[set[int]] | None = None
@@ -352,146 +442,144 @@ def evaluate(
         _check_truth_fits(truth_frames, str(truth), n_q, n_ref)
     ref_window = _trial_window(reference, ref_topic, cfg.window, cfg.max_frames)
     q_window = _trial_window(query, q_topic, cfg.query_window or cfg.window, cfg.max_frames)
-    with open_log(reference) as reader:
-        choices = [resolve_descriptor(name, reader, ref_topic) for name in cfg.descriptors]
-    kinds = list(dict.fromkeys(c.chosen for c in choices))
-    describers = {kind: make_describer(kind) for kind in kinds}
-    out.mkdir(exist_ok=True)  # (an earlier run's results.json stays until this run's replaces it)
+    return _Run(cfg, cfg.score.replace(all_scores=True), reference, query, out, ref_topic, q_topic, ref_window,
+                q_window, None if truth is None else str(truth), truth_frames)
 
-    # 1. score the reference drive. By default as `memlog map` scores it (staged: the detector and
-    # ResMem only where they can change the map; the scores not computed are null in the records), so
-    # the memorable map costs what the map step costs. With --compare-exact (the exact selection needs
-    # every MS), or settings the staged selection does not serve, every score of every frame
-    # (OUT/reference.scored.mcap, reused when it matches).
-    reports: list[ReadReport] = []
-    looks = None  # the frames' thumbnails and view vectors, from the one pass that decodes them
-    staged_cfg = MapConfig(score=cfg.score, select=cfg.select, topics=(ref_topic,), descriptor=None,
+
+def _score_reference(run: _Run) -> None:
+    """Score the reference drive. By default as `memlog map` scores it (staged: the detector and
+    ResMem only where they can change the map; the scores not computed are null in the records), so
+    the memorable map costs what the map step costs. With --compare-exact (the exact selection needs
+    every MS), or settings the staged selection does not serve, every score of every frame
+    (OUT/reference.scored.mcap, reused when it matches)."""
+    cfg = run.cfg
+    staged_cfg = MapConfig(score=cfg.score, select=cfg.select, topics=(run.ref_topic,), descriptor=None,
                            candidates=cfg.candidates)
     if not cfg.compare_exact and staged_stageable(staged_cfg):
-        staged_recs, looks, staged_report = cached_staged_scores(out, "reference", reference, staged_cfg, ref_window)
+        staged_recs, run.looks, staged_report = cached_staged_scores(run.out, "reference", run.reference, staged_cfg,
+                                                                     run.ref_window)
         if staged_report is not None:
-            reports.append(staged_report)
-        recs = staged_recs.get(ref_topic, [])
+            run.reports.append(staged_report)
+        recs = staged_recs.get(run.ref_topic, [])
     else:
-        scored = out / "reference.scored.mcap"
-        if not _reuse_scores(scored, reference, score_cfg, ref_topic, ref_window):
-            reports.append(score(reference, scored, score_cfg, ref_window).report)
-        recs = read_scores(scored)[ref_topic]
-    score_by_frame = {ref_topic: {r["frame_index"]: r for r in recs}}
+        scored = run.out / "reference.scored.mcap"
+        if not _reuse_scores(scored, run.reference, run.score_cfg, run.ref_topic, run.ref_window):
+            run.reports.append(score(run.reference, scored, run.score_cfg, run.ref_window).report)
+        recs = read_scores(scored)[run.ref_topic]
+    run.score_by_frame = {run.ref_topic: {r["frame_index"]: r for r in recs}}
 
-    results: dict[str, Any] = {"memlog_version": __version__}
-    by_kind: dict[str, dict[str, Any]] = {}
-    main: tuple[Any, ...] | None = None
-    # both drives' stops found as `memlog map` finds the map's (its selection's still_distance)
-    still = cfg.select.still_distance
-    for choice in choices:
-        kind = choice.chosen
-        if kind in by_kind:
-            by_kind[kind].setdefault("requested_as", []).append(choice.requested)
-            continue
-        describer = describers[kind]
-        # 2. descriptors of every reference and query frame (unwhitened; cached per kind)
-        ref_t = _described(reference, out / f"reference.{kind}.parquet", describer, ref_window, reports, still,
-                           score_by_frame)
-        q_t = _described(query, out / f"query.{kind}.parquet", describer, q_window, reports, still)
-        if not len(ref_t) or not len(q_t):
-            raise EvaluationError("no frame of the reference or the query was described (window too small?)")
-        n_ref_rows = int(ref_t.frame_index.max()) + 1
 
-        # 3. ground truth, as descriptor rows
-        if truth_frames is not None:
-            truth_src = str(truth)
-            tf = truth_frames
-        else:
-            tf = position_truth(ref_t, q_t, cfg.tol_m)
-            truth_src = f"positions within {cfg.tol_m} m"
-        ref_rows = rows_for(ref_t, max(n_ref_rows, max((max(x) + 1 for x in tf if x), default=0)))
-        truth_rows = truth_as_rows(tf, q_t, ref_rows)
-        if not any(truth_rows):
-            raise EvaluationError("no query frame in the window has a true match among the reference frames in it")
+def _truth_rows(run: _Run, ref_t: DescriptorTable, q_t: DescriptorTable) -> tuple[list[set[int]], str]:
+    """The ground truth as descriptor rows, and where it came from (the file, or both drives'
+    positions within the tolerance)."""
+    if run.truth_frames is not None:
+        truth_src = str(run.truth)
+        tf = run.truth_frames
+    else:
+        tf = position_truth(ref_t, q_t, run.cfg.tol_m)
+        truth_src = f"positions within {run.cfg.tol_m} m"
+    n_ref_rows = int(ref_t.frame_index.max()) + 1
+    ref_rows = rows_for(ref_t, max(n_ref_rows, max((max(x) + 1 for x in tf if x), default=0)))
+    truth_rows = truth_as_rows(tf, q_t, ref_rows)
+    if not any(truth_rows):
+        raise EvaluationError("no query frame in the window has a true match among the reference frames in it")
+    return truth_rows, truth_src
 
-        # 4. every map of the comparison written by the map step's writer (`make_map`), each with its own
-        # whitening and patch PCA fitted on its own kept frames as `memlog map` fits them, read back
-        # from its Parquet and matched as `memlog localize` matches it: the memorable map (exactly the
-        # frames `memlog map` keeps), the full map (`memlog map --keep-fraction 1`), and the baselines of
-        # the memorable map's size (every k-th frame, random frames) as maps of those frames
-        in_window = {ref_topic: [score_by_frame[ref_topic][int(i)] for i in ref_t.frame_index
-                                 if int(i) in score_by_frame[ref_topic]]}
-        maps = _MapWriter(reference, out, kind if len(kinds) > 1 else None, ref_topic, ref_t, in_window, looks,
-                          MapConfig(score=score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=kind,
-                                    whiten=cfg.whiten, whiten_on=cfg.whiten_on, candidates=cfg.candidates),
-                          cfg.score, ref_window)
-        map_res = maps.write("memorable")
-        looks = maps.looks = looks or map_res.looks
-        sel = map_res.selections[ref_topic]
-        mask = np.isin(ref_t.frame_index, sel.kept_indices)
-        table = score_table(in_window[ref_topic], ref_topic)
-        map_table = maps.table(map_res)
-        whitening = map_table.whitening if cfg.whiten else None
-        patch_pca = map_table.patch_pca
 
-        # 5. each map under both protocols, in its own descriptor space (the query whitened and its
-        # patches projected by that map's transforms, as localize does); frame by frame too
-        matching = _matching(whitened(q_t, whitening, patch_pca), whitened(ref_t, whitening, patch_pca), cfg)
-        res: dict[str, Any] = {"descriptor": choice.to_dict(), "describer": describer.meta().to_dict(),
-                               "whitening": map_res.whitening, "matching": matching.info}
-        per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
-        kk = int(mask.sum())
-        given: dict[str, np.ndarray] = {"uniform": uniform_mask(len(ref_t), kk)}
-        exact = None
-        if (cfg.compare_exact and cfg.select.mode == "segment" and cfg.candidates != "all"
-                and map_res.tables.get(ref_topic) is not None):
-            exact = cfg.select.run(map_res.tables[ref_topic], ms_bound="one" if score_cfg.normalize == "static" else "ss")
-            given["memorable_exact"] = np.isin(ref_t.frame_index, exact.kept_indices)
-        if "x" in ref_t.positions or "lat" in ref_t.positions:
-            pos = local_positions(ref_t)
-            by_distance = distance_uniform_mask(pos, kk) if pos is not None else None
-            if by_distance is not None:
-                given["uniform_distance"] = by_distance
-        r, mo, po = matching.evaluate(truth_rows, mask, map_table=map_table)
-        res["memorable"], per_variant["memorable"] = r, (mo, po)
-        full_res = maps.write("full", select=replace(cfg.select, keep_fraction=1.0))
-        res["full"], per_variant["full"] = maps.evaluate(full_res, q_t, truth_rows, cfg)
-        res["full"]["map"] = str(full_res.output)
-        for name, m in given.items():
-            res[name], per_variant[name] = maps.evaluate(maps.write(name, keep=m), q_t, truth_rows, cfg)
-            res[name]["map"] = str(maps.path(name))
-        if whitening is not None:
-            raw = _matching(q_t.projected(patch_pca), ref_t.projected(patch_pca), cfg)
-            full_mask = np.isin(ref_t.frame_index, maps.table(full_res).frame_index)
-            res["full_unwhitened"] = raw.evaluate(truth_rows, full_mask)[0]
-        res["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
-                                 "select": cfg.select.mode, "candidates": cfg.candidates,
-                                 "keep_fraction": cfg.select.keep_fraction, "gaps": len(sel.gaps),
-                                 "segments": sel.info.get("by"), "still_frames": sel.info.get("still_frames")})
-        if exact is not None:
-            res["memorable_exact"]["kept_indices"] = exact.kept_indices.tolist()
-        res["uniform"]["note"] = ("every k-th frame: evenly spaced frame indices, as many as the memorable map, "
-                                  "written as a map of those frames")
-        rand = [maps.evaluate(maps.write(f"random-{seed}", keep=m, temporary=True), q_t, truth_rows, cfg)[0]
-                for seed, m in zip(range(cfg.seeds), random_masks(len(ref_t), kk, range(cfg.seeds)))]
-        maps.clean()
-        res["random"] = mean_std(rand)
-        by_kind[kind] = res
-        reports.extend(maps.reports)
-        if main is None:
-            main = (choice, describer, ref_t, matching, truth_rows, table, sel, per_variant, map_res, truth_src)
+def _evaluate_kind(run: _Run, choice: Any, describer: Describer, several: bool) -> tuple[dict[str, Any], tuple[Any, ...]]:
+    """Every map of the comparison with one descriptor kind, and what the analyses of the main kind
+    need. The maps are written by the map step's writer (`make_map`), each with its own whitening
+    and patch PCA fitted on its own kept frames as `memlog map` fits them, read back from its
+    Parquet and matched as `memlog localize` matches it: the memorable map (exactly the frames
+    `memlog map` keeps), the full map (`memlog map --keep-fraction 1`), and the baselines of the
+    memorable map's size (every k-th frame, random frames) as maps of those frames."""
+    cfg, kind, ref_topic = run.cfg, choice.chosen, run.ref_topic
+    still = cfg.select.still_distance  # both drives' stops found as `memlog map` finds the map's
+    # descriptors of every reference and query frame (unwhitened; cached per kind)
+    ref_t = _described(run.reference, run.out / f"reference.{kind}.parquet", describer, run.ref_window, run.reports,
+                       still, run.score_by_frame)
+    q_t = _described(run.query, run.out / f"query.{kind}.parquet", describer, run.q_window, run.reports, still)
+    if not len(ref_t) or not len(q_t):
+        raise EvaluationError("no frame of the reference or the query was described (window too small?)")
+    truth_rows, truth_src = _truth_rows(run, ref_t, q_t)
+    in_window = {ref_topic: [run.score_by_frame[ref_topic][int(i)] for i in ref_t.frame_index
+                             if int(i) in run.score_by_frame[ref_topic]]}
+    maps = _MapWriter(run.reference, run.out, kind if several else None, ref_topic, ref_t, in_window, run.looks,
+                      MapConfig(score=run.score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=kind,
+                                whiten=cfg.whiten, whiten_on=cfg.whiten_on, candidates=cfg.candidates),
+                      cfg.score, run.ref_window)
+    map_res = maps.write("memorable")
+    run.looks = maps.looks = run.looks or map_res.looks
+    sel = map_res.selections[ref_topic]
+    map_table = maps.table(map_res)
+    whitening = map_table.whitening if cfg.whiten else None
+    # each map under both protocols, in its own descriptor space (the query whitened and its patches
+    # projected by that map's transforms, as localize does); frame by frame too
+    matching = _matching(whitened(q_t, whitening, map_table.patch_pca), whitened(ref_t, whitening,
+                                                                                 map_table.patch_pca), cfg)
+    res: dict[str, Any] = {"descriptor": choice.to_dict(), "describer": describer.meta().to_dict(),
+                           "whitening": map_res.whitening, "matching": matching.info}
+    per_variant = _compare_maps(run, maps, map_res, map_table, matching, ref_t, q_t, truth_rows, res)
+    run.reports.extend(maps.reports)
+    table = score_table(in_window[ref_topic], ref_topic)
+    return res, (choice, describer, ref_t, matching, truth_rows, table, sel, per_variant, map_res, truth_src)
 
-    assert main is not None
-    (choice, describer, ref_t, matching, truth_rows, table, sel, per_variant, map_res, truth_src) = main
-    first = by_kind[choice.chosen]
-    for name in ("full", "memorable", "memorable_exact", "uniform", "uniform_distance", "random"):
-        if name in first:
-            results[name] = first[name]
-    results["matching"] = first["matching"]
-    results["descriptor"] = choice.to_dict()
-    results["whitening"] = first["whitening"]
-    results["descriptors"] = by_kind
 
-    # 6. sweeps, contribution, size and time (main descriptor). The sweeps and the contribution apply
-    # the paper's rule to every reference frame, so they need every score of every frame: without them
-    # (the staged scoring, --compare-exact not given) they say so instead of counting the frames not
-    # scored as failing.
+def _compare_maps(run: _Run, maps: _MapWriter, map_res: MapResult, map_table: DescriptorTable, matching: Matching,
+                  ref_t: DescriptorTable, q_t: DescriptorTable, truth_rows: list[set[int]], res: dict[str, Any]
+                  ) -> dict[str, tuple[ProtocolResult, ProtocolResult]]:
+    """The memorable map, the full map and the baselines of its size, each a written map, into
+    ``res``; the map-only and paper results of each by name."""
+    cfg, ref_topic = run.cfg, run.ref_topic
+    sel = map_res.selections[ref_topic]
+    mask = np.isin(ref_t.frame_index, sel.kept_indices)
+    per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
+    kk = int(mask.sum())
+    given: dict[str, np.ndarray] = {"uniform": uniform_mask(len(ref_t), kk)}
+    exact = None
+    if (cfg.compare_exact and cfg.select.mode == "segment" and cfg.candidates != "all"
+            and map_res.tables.get(ref_topic) is not None):
+        exact = cfg.select.run(map_res.tables[ref_topic], ms_bound="one" if run.score_cfg.normalize == "static" else "ss")
+        given["memorable_exact"] = np.isin(ref_t.frame_index, exact.kept_indices)
+    if "x" in ref_t.positions or "lat" in ref_t.positions:
+        pos = local_positions(ref_t)
+        by_distance = distance_uniform_mask(pos, kk) if pos is not None else None
+        if by_distance is not None:
+            given["uniform_distance"] = by_distance
+    r, mo, po = matching.evaluate(truth_rows, mask, map_table=map_table)
+    res["memorable"], per_variant["memorable"] = r, (mo, po)
+    full_res = maps.write("full", select=replace(cfg.select, keep_fraction=1.0))
+    res["full"], per_variant["full"] = maps.evaluate(full_res, q_t, truth_rows, cfg)
+    res["full"]["map"] = str(full_res.output)
+    for name, m in given.items():
+        res[name], per_variant[name] = maps.evaluate(maps.write(name, keep=m), q_t, truth_rows, cfg)
+        res[name]["map"] = str(maps.path(name))
+    if map_table.whitening is not None and cfg.whiten:
+        raw = _matching(q_t.projected(map_table.patch_pca), ref_t.projected(map_table.patch_pca), cfg)
+        full_mask = np.isin(ref_t.frame_index, maps.table(full_res).frame_index)
+        res["full_unwhitened"] = raw.evaluate(truth_rows, full_mask)[0]
+    res["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
+                             "select": cfg.select.mode, "candidates": cfg.candidates,
+                             "keep_fraction": cfg.select.keep_fraction, "gaps": len(sel.gaps),
+                             "segments": sel.info.get("by"), "still_frames": sel.info.get("still_frames")})
+    if exact is not None:
+        res["memorable_exact"]["kept_indices"] = exact.kept_indices.tolist()
+    res["uniform"]["note"] = ("every k-th frame: evenly spaced frame indices, as many as the memorable map, "
+                              "written as a map of those frames")
+    rand = [maps.evaluate(maps.write(f"random-{seed}", keep=m, temporary=True), q_t, truth_rows, cfg)[0]
+            for seed, m in zip(range(cfg.seeds), random_masks(len(ref_t), kk, range(cfg.seeds)))]
+    maps.clean()
+    res["random"] = mean_std(rand)
+    return per_variant
+
+
+def _analyses(results: dict[str, Any], cfg: EvaluateConfig, table: Any, matching: Matching,
+              truth_rows: list[set[int]], sel: Any, per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]]
+              ) -> None:
+    """The sweeps and each criterion's contribution (main descriptor). They apply the paper's rule
+    to every reference frame, so they need every score of every frame: without them (the staged
+    scoring, --compare-exact not given) they say so instead of counting the frames not scored as
+    failing."""
     missing = [c for c in ("ms", "ss", "es") if not np.isfinite(getattr(table, c)).all()]
     if missing:
         why = (f"not computed: the reference was scored as memlog map scores it (staged), so {', '.join(missing)} "
@@ -499,36 +587,26 @@ def evaluate(
                "score of every frame")
         results["sweeps"] = {"skipped": why}
         results["criterion_contribution"] = {"skipped": why}
-    else:
-        results["sweeps"] = sweeps(table, matching, truth_rows, cfg.k, cfg.paper_discarded)
-        th = sel.thresholds if cfg.select.mode == "paper" and sel.thresholds else cfg.select.thresholds
-        results["criterion_contribution"] = contribution(table, per_variant["full"][0], th)
-    results["map_size"] = map_res.to_dict()
-    results["map_size"].pop("topics", None)
-    results["truth"] = truth_src
-    results["settings"] = {"score": score_cfg.to_dict(), "select": cfg.select.to_dict(),
-                           "descriptor": describer.meta().to_dict(), "options": cfg.options(),
-                           "reference": reference, "query": query, "reference_topic": ref_topic,
-                           "query_topic": q_topic,
-                           "windows": {"reference": ref_window.to_dict(), "query": q_window.to_dict()},
-                           "inputs": {"reference": log_identity(reference), "query": log_identity(query)},
-                           "protocols": {
-                               "map-only": "only map frames are searched; a query is correct iff its best map frame "
-                                           "is in its truth set; queries whose true places are all missing from "
-                                           "the map stay positives and can only be wrong",
-                               "paper": "the full reference database is searched; a query whose best match is a "
-                                        "discarded frame reports no match (never accepted at any threshold); with "
-                                        "discarded=false_negative it still counts in the recall denominator",
-                           }}
-    results["seconds"] = round(time.perf_counter() - t_start, 1)
-    if cfg.report:
-        from memlog.outputs.report import write_report
+        return
+    results["sweeps"] = sweeps(table, matching, truth_rows, cfg.k, cfg.paper_discarded)
+    th = sel.thresholds if cfg.select.mode == "paper" and sel.thresholds else cfg.select.thresholds
+    results["criterion_contribution"] = contribution(table, per_variant["full"][0], th)
 
-        write_report(out / "report.html", results, table, sel, per_variant, ref_t, reference, ref_topic,
-                     query=query, query_topic=q_topic, query_table=matching.q_t, truth=truth_rows)
-    else:
-        (out / "report.html").unlink(missing_ok=True)  # never leave an older report beside new results
-    write_results(out / "results.json", results)  # last: results.json is there only for a finished run
-    if map_res.report is not None:
-        reports.append(map_res.report)
-    return EvaluateResult(results, reports)
+
+def _settings(run: _Run, describer: Describer) -> dict[str, Any]:
+    """``results.json``'s record of the run's settings, inputs, windows and protocols."""
+    cfg = run.cfg
+    return {"score": run.score_cfg.to_dict(), "select": cfg.select.to_dict(),
+            "descriptor": describer.meta().to_dict(), "options": cfg.options(),
+            "reference": run.reference, "query": run.query, "reference_topic": run.ref_topic,
+            "query_topic": run.q_topic,
+            "windows": {"reference": run.ref_window.to_dict(), "query": run.q_window.to_dict()},
+            "inputs": {"reference": log_identity(run.reference), "query": log_identity(run.query)},
+            "protocols": {
+                "map-only": "only map frames are searched; a query is correct iff its best map frame "
+                            "is in its truth set; queries whose true places are all missing from "
+                            "the map stay positives and can only be wrong",
+                "paper": "the full reference database is searched; a query whose best match is a "
+                         "discarded frame reports no match (never accepted at any threshold); with "
+                         "discarded=false_negative it still counts in the recall denominator",
+            }}

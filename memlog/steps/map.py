@@ -31,40 +31,36 @@ from typing import Any, Literal
 
 import numpy as np
 
-from memlog._version import __version__
 from memlog.configfile import check_ints
 from memlog.descriptors.auto import AUTO, DescriptorChoice, resolve_descriptor
-from memlog.descriptors.extract import ReferenceDescribing, build_table, drive_distinctiveness
+from memlog.descriptors.extract import ReferenceDescribing, drive_distinctiveness
 from memlog.descriptors.registry import DESCRIBERS, make_describer
-from memlog.descriptors.whitening import MIN_SAMPLES
 from memlog.errors import ConfigError, ImageDecodeError, SelectionError
 from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow, LogReader
-from memlog.io.frame import Frame
 from memlog.io.identity import same_identity
 from memlog.io.open import open_log
 from memlog.io.positions import MotionTrack, PositionTrack, read_tracks
 from memlog.io.records import ReadReport
 from memlog.models.runtime import choose_providers, on_thread
 from memlog.outputs.annotated import read_scores, run_config, run_input_identity, scores_message
-from memlog.outputs.channels import family_of
-from memlog.outputs.map_artefact import write_map
-from memlog.outputs.maplog import MapLogWriter
-from memlog.progress import info, progress
+from memlog.progress import progress
+from memlog.settings import Flag, count_or_all, int_range, positive_int, setting
 from memlog.scoring.config import ScoreConfig
-from memlog.scoring.motion import Stops, find_stops, frame_motion, moving_index, stops_record
+from memlog.scoring.motion import frame_motion
 from memlog.scoring.scorer import view_vector
 from memlog.selection import ScoreTable, Selection
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.selection.segment import SegmentConfig, cut_segments
 from memlog.selection.staged import MSState, StaticityMode, staticity_mode
 from memlog.steps import map_scoring
+from memlog.steps.map_log import Looks, MapPlan, MapResult, write_map_log
 from memlog.steps.map_scoring import (CheapFrame, Detected, DetectJob, DetectRule, SegmentJob, cheap_frames,
                                       choose_chunk, detect_chunk, detect_segments, staged_record)
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
 from memlog.steps.score import scored_frames
 
-__all__ = ["make_map", "MapConfig", "MapResult", "score_table", "EmptyMapError", "collect_scores", "staged_scores",
+__all__ = ["make_map", "MapConfig", "MapResult", "Looks", "score_table", "EmptyMapError", "collect_scores", "staged_scores",
            "staged_scores_and_looks", "staged_stageable"]
 
 Records = dict[str, list[dict[str, Any]]]
@@ -102,21 +98,49 @@ class MapConfig:
 
     score: ScoreConfig = field(default_factory=ScoreConfig)
     select: SelectionConfig = field(default_factory=SelectionConfig)
-    topics: tuple[str, ...] | None = None
-    keep_topics: tuple[str, ...] = ()
-    position_topic: str | None = None
-    image_format: Literal["jpeg", "png"] = "jpeg"
-    jpeg_quality: int = 90
-    descriptor: str | None = AUTO
-    descriptors_path: str | None = None
-    descriptor_dtype: Literal["float32", "float16"] = "float32"
-    whiten: bool = True
-    whiten_on: Literal["kept", "drive"] = "kept"
-    whiten_dim: int | None = None
-    workers: int = 1
-    candidates: int | Literal["all"] = DEFAULT_CANDIDATES
-    stride: int = 1
-    score_kept: bool = False
+    topics: tuple[str, ...] | None = setting(None, Flag(
+        ("-t", "--topic"), "camera topic(s) to map (repeatable; default: every camera topic)", "inputs",
+        action="append", dest="topics", metavar="TOPIC", value=tuple))
+    keep_topics: tuple[str, ...] = setting((), Flag(
+        ("--keep-topic",), "copy this topic whole into the map (GPS, odometry...; repeatable)", "outputs",
+        action="append", metavar="TOPIC", value=tuple))
+    position_topic: str | None = setting(None, Flag(
+        ("--position-topic",), "NavSatFix/pose/odometry topic for positions (default: first found)", "inputs",
+        metavar="TOPIC"))
+    image_format: Literal["jpeg", "png"] = setting("jpeg", Flag(
+        ("--image-format",), "encoding of raw frames (default jpeg)", "outputs", choices=("jpeg", "png")))
+    jpeg_quality: int = setting(90, Flag(("--jpeg-quality",), "JPEG quality of raw frames, 1..100 (default 90)",
+                                         "outputs", int_range(1, 100), metavar="Q"))
+    descriptor: str | None = setting(AUTO, Flag(
+        ("--descriptor",), "reference descriptor: auto (default: by frame size), a kind (thumbnail, dinov2-gem, ...) "
+        "or none", "outputs", metavar="KIND", value=lambda v: None if v == "none" else v))
+    descriptors_path: str | None = setting(None, Flag(
+        ("--descriptors",), "descriptor Parquet path (default: OUT.parquet)", "outputs", metavar="PATH"))
+    descriptor_dtype: Literal["float32", "float16"] = setting("float32", Flag(
+        ("--descriptor-dtype",), "storage of the descriptors (default float32; float16 halves the file)", "outputs",
+        choices=("float32", "float16")))
+    whiten: bool = setting(True, Flag(
+        ("--no-whiten",), "do not fit and store a PCA-whitening of the descriptors (default: whitened)", "outputs",
+        action="store_true", value=lambda v: False))
+    whiten_on: Literal["kept", "drive"] = setting("kept", Flag(
+        ("--whiten-on",), "frames the whitening is fitted on: kept (default; the network describes the kept frames "
+        "only) or drive (every frame, each described: slower)", "outputs", choices=("kept", "drive")))
+    whiten_dim: int | None = setting(None, Flag(
+        ("--whiten-dim",), "largest whitened dimension (default 512; never more than half the frames)", "outputs",
+        positive_int, metavar="D"))
+    workers: int = setting(1, Flag(("--workers",), "worker processes scoring frames (default 1)", "performance",
+                                   positive_int, metavar="N"))
+    candidates: int | Literal["all"] = setting(DEFAULT_CANDIDATES, Flag(
+        ("--candidates",), "segment selection: run ResMem on at most K frames per segment, the best by staticity and "
+        f"entropy spread over the segment (approximate; default {DEFAULT_CANDIDATES}, see docs/defaults.md); 'all': "
+        "exactly the frames that can still win, which keeps the same frames as scoring every frame", "selection",
+        count_or_all, metavar="K|all"))
+    stride: int = setting(1, Flag(("--stride",), "consider every n-th frame of each topic (default 1)", "inputs",
+                                  positive_int, metavar="N"))
+    score_kept: bool = setting(False, Flag(
+        ("--score-kept",), "also run ResMem (25 crops) on a segment's only candidate to record its memorability; by "
+        "default it is not run where it would choose nothing (--candidates 1): the kept frame's record has ms null "
+        "and its bounds", "scoring", action="store_true", default=None))
 
     def __post_init__(self) -> None:
         if not isinstance(self.score_kept, bool):
@@ -146,41 +170,6 @@ class MapConfig:
         if self.descriptor is None:
             return None
         return Path(self.descriptors_path) if self.descriptors_path else Path(output).with_suffix(".parquet")
-
-
-@dataclass
-class MapResult:
-    """What :func:`make_map` wrote and which frames it kept (``selections`` per topic)."""
-
-    output: Path
-    descriptors: Path | None
-    selections: dict[str, Selection]
-    frames_in: int
-    frames_kept: int
-    bytes_in: int
-    bytes_out: int
-    thresholds: dict[str, float] = field(default_factory=dict)
-    seconds: float = 0.0
-    report: ReadReport | None = None
-    crops_run: int | None = None
-    crops_full: int | None = None
-    descriptor: DescriptorChoice | None = None
-    whitening: dict[str, Any] | None = None
-    tables: dict[str, ScoreTable] = field(default_factory=dict)  # what each topic was selected from
-    looks: Looks | None = field(default=None, repr=False)  # the frames' looks selection used (make_map's known_looks)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "output": str(self.output), "descriptors": str(self.descriptors) if self.descriptors else None,
-            "frames_in": self.frames_in, "frames_kept": self.frames_kept,
-            "frame_fraction": self.frames_kept / max(self.frames_in, 1),
-            "bytes_in": self.bytes_in, "bytes_out": self.bytes_out,
-            "byte_fraction": self.bytes_out / max(self.bytes_in, 1), "thresholds": self.thresholds,
-            "seconds": round(self.seconds, 3), "resmem_crops_run": self.crops_run,
-            "resmem_crops_full_scoring": self.crops_full,
-            "descriptor": self.descriptor.to_dict() if self.descriptor else None, "whitening": self.whitening,
-            "topics": {t: s.to_dict() for t, s in self.selections.items()},
-        }
 
 
 def _val(v: Any) -> float:
@@ -225,10 +214,6 @@ def collect_scores(
         out.setdefault(item.frame.topic, []).append(rec)
     return out
 
-
-Looks = dict[str, dict[int, tuple[np.ndarray | None, np.ndarray | None]]]
-"""What selection sees of each frame besides its scores, by topic and frame index: its thumbnail
-descriptor (near-duplicates) and its view vector (view change, stops); None when not needed."""
 
 
 def frame_looks(reader: LogReader, topic: str, indices: set[int], thumbs: bool, views: bool
@@ -287,28 +272,6 @@ def _stageable(cfg: MapConfig) -> bool:
     sel = cfg.select
     return sel.mode == "segment" and sel.combine == "geometric" and not cfg.score.all_scores \
         and cfg.score.mode != "paper" and not sel.needs_distinctiveness
-
-
-def _moving(frames: list[Frame], tables: dict[str, ScoreTable], still_distance: float
-            ) -> tuple[np.ndarray | None, dict[str, Any] | None]:
-    """The kept frames' index with the drive's stops left out (the stops selection found, from
-    the log's motion or the view vectors of every frame it saw: :func:`find_stops`) and how they
-    were found (``extra["stops"]``); None when a topic's table has neither view vectors nor motion
-    for every frame."""
-    out = np.zeros(len(frames), dtype=np.int64)
-    lookup: dict[str, dict[int, int]] = {}
-    found: dict[str, Stops] = {}
-    for t, table in tables.items():
-        if table.view is None and (table.motion is None or not table.motion.complete):
-            return None, None
-        found[t] = find_stops(table.n, table.view, table.motion, still_distance)
-        lookup[t] = dict(zip(table.index.tolist(), moving_index(table.index, found[t].still).tolist()))
-    for k, f in enumerate(frames):
-        v = lookup.get(f.topic, {}).get(f.index)
-        if v is None:
-            return None, None
-        out[k] = v
-    return out, stops_record(still_distance, found)
 
 
 def _selections(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topic: Records,
@@ -624,16 +587,7 @@ def make_map(
     :class:`EmptyMapError` when nothing would be kept."""
     t0 = time.perf_counter()
     cfg = config or MapConfig()
-    sel_cfg = cfg.select
-    dpath = cfg.descriptors_file(output)
-    inputs: list[Any] = [log] + ([scores] if isinstance(scores, (str, os.PathLike)) else [])
-    check_output(output, inputs)
-    if not getattr(executor, "remote", False):  # (a cluster's workers check their own device)
-        choose_providers(cfg.score.device)  # --device cuda without CUDA: said before any work
-    if dpath is not None:
-        check_output(dpath, inputs + [output], flag="--descriptors")
-    if sel_cfg.needs_distinctiveness and cfg.descriptor is None:
-        raise ConfigError("distinctiveness (--dt / --distinct-weight) is computed from descriptors: give a descriptor")
+    dpath = _check_map_inputs(log, output, cfg, scores, executor)
     with open_log(log) as reader:
         cams = reader.check_camera_topics(cfg.topics)
         missing_keep = set(cfg.keep_topics) - set(reader.topics())
@@ -656,102 +610,64 @@ def make_map(
             if executor is None:
                 ex.close()
         cams = [t for t in cams if t in recs_by_topic] if cfg.topics is None else cams
-        ds_by_topic: dict[str, dict[int, float]] = {}
-        known: dict[tuple[str, int], np.ndarray] = dict(known_descriptors or {})
-        whitening = None
-        if sel_cfg.needs_distinctiveness and describer is not None:
-            ds_by_topic, known, whitening = drive_distinctiveness(
-                reader, cams, describer, whiten=cfg.whiten, whiten_dim=cfg.whiten_dim, config=sel_cfg.distinct_config(),
-                indices={t: {r["frame_index"] for r in recs_by_topic.get(t, [])} for t in cams}, known=known)
-        tables: dict[str, ScoreTable] = {}
-        selections = _selections(reader, cfg, cams, recs_by_topic, track, looks,
-                                 ds_by_topic if sel_cfg.needs_distinctiveness else None, tables, motion)
-        kept = {t: {int(i) for i in s.index[s.keep]} for t, s in selections.items()}
-        if keep_frames is not None:  # given frames (of those the selection saw: the ones that decoded)
-            kept = {t: {int(i) for i in s.index} & {int(i) for i in keep_frames.get(t, ())}
-                    for t, s in selections.items()}
-        n_in = sum(len(s.index) for s in selections.values())
-        n_kept = sum(len(k) for k in kept.values())
-        thresholds = next((s.thresholds for s in selections.values() if s.thresholds), {})
-        if n_kept == 0:
-            raise EmptyMapError(
-                f"{reader.path}: no frame passes the selection ({n_in} frames scored; thresholds "
-                f"{json.dumps(thresholds) if thresholds else 'n/a'}). Low-resolution or dark drives score low "
-                "entropy; lower --mt/--st/--et or let memlog pick thresholds with --keep-fraction 0.25"
-            )
-        score_recs = {t: {r["frame_index"]: r for r in recs_by_topic.get(t, [])} for t in cams}
-        describing = None
-        if describer is not None:
-            describing = ReferenceDescribing(describer, reader, fit_whitening=cfg.whiten and whitening is None,
-                                             fit_on=cfg.whiten_on,
-                                             whiten_dim=cfg.whiten_dim, whitening=whitening, known=known,
-                                             known_patches=known_patches)
-        bytes_in = bytes_kept = 0
-        counts = reader.message_counts()
-        total = None
-        if counts is not None:
-            wanted = set(cams) | set(cfg.keep_topics)
-            total = sum(n for c in reader.channels() if c.topic in wanted for n in [counts.get(c.id, 0)])
-        with MapLogWriter(output, reader.profile, cams, image_format=cfg.image_format,
-                          jpeg_quality=cfg.jpeg_quality, family=family_of(reader, cams)) as w:
-            stream = reader.stream(cams, passthrough=cfg.keep_topics)
-            for item in progress(stream, total=total, desc="map", unit="msg"):
-                if item.index is None:
-                    w.write_passthrough(item.raw)
-                    continue
-                bytes_in += len(item.raw.data)
-                frame = item.frame
-                if frame is None:
-                    continue
-                keep = item.index in kept[item.raw.channel.topic]
-                if describing is not None and (keep or (describing.wants_all_frames
-                                                        and frame.index in score_recs[frame.topic])):
-                    describing.add(frame, keep)  # with whiten_on "drive", every frame selection saw
-                if not keep:
-                    continue
-                bytes_kept += len(item.raw.data)
-                w.write_frame(frame, item.raw, score_recs[frame.topic].get(frame.index))
-            result = MapResult(Path(output), None, selections, n_in, n_kept, bytes_in, 0, dict(thresholds),
-                               report=reader.report, crops_run=crops[0], crops_full=crops[1], descriptor=choice,
-                               tables=tables, looks=looks)
-            described = None
-            if describing is not None:
-                described = describing.result(source=f"{reader.path} ({', '.join(cams)})")
-                white = described[2]
-                if white is not None:
-                    result.whitening = {"sha256": white.sha256, "dim_in": white.dim_in, "dim_out": white.dim_out,
-                                        "n_fit": white.n_fit, "eps": white.eps}
-                elif cfg.whiten:
-                    on = "kept frames" if cfg.whiten_on == "kept" else "frames of the drive"
-                    result.whitening = {"skipped": f"fewer than {MIN_SAMPLES} {on} described; not whitened"}
-                    info(f"{reader.path}: the map is not whitened: whitening is fitted on at least "
-                         f"{MIN_SAMPLES} {on}" + (" (--whiten-on drive fits it on every frame)"
-                                                  if cfg.whiten_on == "kept" else ""))
-            table = None
-            if described is not None and describer is not None and dpath is not None and choice is not None:
-                frames, desc, white = described
-                patches, patch_pca = describing.patch_result() if describing is not None else (None, None)
-                extra = {"map": str(output), "thresholds": thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
-                         "keep_fraction": sel_cfg.keep_fraction, "descriptor_choice": choice.to_dict()}
-                moving, stops = _moving(frames, tables, sel_cfg.still_distance)
-                table = build_table(frames, desc, describer, scores=score_recs, track=track, extra=extra,
-                                    whitening=white, moving=moving, stops=stops, patches=patches,
-                                    patch_pca=patch_pca)
-            # the map and its descriptors as one artefact: each records the other, both in place or neither
-            write_map(w, {
-                "descriptor": json.dumps(choice.to_dict() if choice else None, sort_keys=True),
-                "whitening": json.dumps(result.whitening, sort_keys=True),
-                "memlog_version": __version__, "input": str(reader.path), "config": cfg.score.to_json(),
-                "selection_config": json.dumps(sel_cfg.to_dict(), sort_keys=True),
-                "mode": sel_cfg.mode, "keep_fraction": json.dumps(sel_cfg.keep_fraction),
-                "thresholds": json.dumps(thresholds),
-                "frames_in": str(n_in), "frames_kept": str(n_kept), "camera_bytes_in": str(bytes_in),
-                "camera_bytes_kept_before_reencoding": str(bytes_kept),
-                "selection": json.dumps({t: s.to_dict() for t, s in selections.items()}),
-                "kept_by": "given" if keep_frames is not None else "selection",
-                "resmem_crops_run": json.dumps(crops[0]), "resmem_crops_full_scoring": json.dumps(crops[1]),
-            }, dpath if dpath is not None else cfg.descriptors_path, table, dtype=cfg.descriptor_dtype)
-            result.descriptors = dpath if table is not None else None
-        result.bytes_out = os.path.getsize(output)
+        plan = _plan(reader, cfg, cams, recs_by_topic, looks, crops, track, motion, choice, describer,
+                     known_descriptors, known_patches, keep_frames)
+        result = write_map_log(reader, output, dpath, cfg, plan)
     result.seconds = time.perf_counter() - t0
     return result
+
+
+def _check_map_inputs(log: str | os.PathLike[str], output: str | os.PathLike[str], cfg: MapConfig,
+                      scores: str | os.PathLike[str] | Records | None, executor: Executor | None) -> Path | None:
+    """Every check before the work: the outputs (never over an input), the device, the settings;
+    the descriptor Parquet's path (None: no descriptors)."""
+    dpath = cfg.descriptors_file(output)
+    inputs: list[Any] = [log] + ([scores] if isinstance(scores, (str, os.PathLike)) else [])
+    check_output(output, inputs)
+    if not getattr(executor, "remote", False):  # (a cluster's workers check their own device)
+        choose_providers(cfg.score.device)  # --device cuda without CUDA: said before any work
+    if dpath is not None:
+        check_output(dpath, inputs + [output], flag="--descriptors")
+    if cfg.select.needs_distinctiveness and cfg.descriptor is None:
+        raise ConfigError("distinctiveness (--dt / --distinct-weight) is computed from descriptors: give a descriptor")
+    return dpath
+
+
+def _plan(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topic: dict[str, list[dict[str, Any]]],
+          looks: Looks | None, crops: tuple[int | None, int | None], track: PositionTrack | None,
+          motion: Sequence[MotionTrack], choice: DescriptorChoice | None, describer: Any,
+          known_descriptors: dict[tuple[str, int], np.ndarray] | None,
+          known_patches: dict[tuple[str, int], np.ndarray] | None,
+          keep_frames: Mapping[str, Collection[int]] | None) -> MapPlan:
+    """Select the frames (distinctiveness first, when the selection weighs it) and say what the map
+    log will hold; :class:`EmptyMapError` when nothing would be kept."""
+    sel_cfg = cfg.select
+    ds_by_topic: dict[str, dict[int, float]] = {}
+    known: dict[tuple[str, int], np.ndarray] = dict(known_descriptors or {})
+    whitening = None
+    if sel_cfg.needs_distinctiveness and describer is not None:
+        ds_by_topic, known, whitening = drive_distinctiveness(
+            reader, cams, describer, whiten=cfg.whiten, whiten_dim=cfg.whiten_dim, config=sel_cfg.distinct_config(),
+            indices={t: {r["frame_index"] for r in recs_by_topic.get(t, [])} for t in cams}, known=known)
+    tables: dict[str, ScoreTable] = {}
+    selections = _selections(reader, cfg, cams, recs_by_topic, track, looks,
+                             ds_by_topic if sel_cfg.needs_distinctiveness else None, tables, motion)
+    kept = {t: {int(i) for i in s.index[s.keep]} for t, s in selections.items()}
+    if keep_frames is not None:  # given frames (of those the selection saw: the ones that decoded)
+        kept = {t: {int(i) for i in s.index} & {int(i) for i in keep_frames.get(t, ())} for t, s in selections.items()}
+    n_in = sum(len(s.index) for s in selections.values())
+    thresholds = next((s.thresholds for s in selections.values() if s.thresholds), {})
+    if sum(len(k) for k in kept.values()) == 0:
+        raise EmptyMapError(
+            f"{reader.path}: no frame passes the selection ({n_in} frames scored; thresholds "
+            f"{json.dumps(thresholds) if thresholds else 'n/a'}). Low-resolution or dark drives score low "
+            "entropy; lower --mt/--st/--et or let memlog pick thresholds with --keep-fraction 0.25"
+        )
+    describing = None
+    if describer is not None:
+        describing = ReferenceDescribing(describer, reader, fit_whitening=cfg.whiten and whitening is None,
+                                         fit_on=cfg.whiten_on, whiten_dim=cfg.whiten_dim, whitening=whitening,
+                                         known=known, known_patches=known_patches)
+    score_recs = {t: {r["frame_index"]: r for r in recs_by_topic.get(t, [])} for t in cams}
+    return MapPlan(cams, kept, score_recs, selections, tables, looks, track, dict(thresholds), crops, choice,
+                   describer, describing, "given" if keep_frames is not None else "selection")
