@@ -9,14 +9,23 @@ The Python API (for notebooks) is the pipeline steps with their typed configs::
     loc = memlog.localize("map.parquet", "query.bag", "matches.parquet")
 
 Names load on first use, so ``import memlog`` is cheap.
+
+Importing memlog reads the environment once (``MEMLOG_MAX_PIXELS``, ``MEMLOG_ENTROPY_KERNEL``,
+``MEMLOG_CACHE_DIR``, ``XDG_CACHE_HOME``, ``MEMLOG_DEBUG``, ``RAY_ADDRESS``) and installs the
+runtime context it asks for (:mod:`memlog.runtime`); a bad value is warned about and its default
+used. No other memlog module reads the environment: change a setting with
+``memlog.runtime.install(memlog.runtime.current().replace(...))`` or ``with memlog.runtime.use(...)``.
 """
 
 from __future__ import annotations
 
 import importlib
+import os
 from typing import TYPE_CHECKING, Any
 
 from memlog._version import __version__
+from memlog.errors import MemlogError as _MemlogError
+from memlog.runtime import Runtime as _Runtime, install as _install
 
 if TYPE_CHECKING:
     from memlog.io.base import FrameWindow as FrameWindow
@@ -30,6 +39,14 @@ if TYPE_CHECKING:
     from memlog.steps.map import MapConfig as MapConfig, make_map as make_map
     from memlog.steps.score import score as score
 
+
+def _bad_setting(exc: _MemlogError) -> None:
+    from memlog.progress import warning
+
+    warning(f"{exc}; the default is used")
+
+
+_install(_Runtime.from_environment(os.environ, on_error=_bad_setting))
 
 _WHERE = {
     "open_log": "memlog.io.open",

@@ -181,14 +181,17 @@ def test_the_drivers_settings_reach_the_actors_and_their_records_come_back(
     from memlog.io.image import max_pixels, set_max_pixels
     from memlog.steps.ray_pool import Placement, RayActors
 
-    monkeypatch.setenv("MEMLOG_MAX_PIXELS", str(max_pixels()))  # restored after the test
-    set_max_pixels(54321)
+    from memlog.runtime import current, use
+
     caplog.set_level(logging.INFO, logger="memlog")
-    ex = RayActors(Placement(1, 1, 0.0))
-    try:
-        assert list(ex.map_ordered(_cap_and_say, [("said on a Ray worker",)])) == [54321]
-    finally:
-        ex.close()
+    with use(current()):  # the runtime context in force now is put back after the test
+        set_max_pixels(54321)
+        ex = RayActors(Placement(1, 1, 0.0))
+        try:
+            assert list(ex.map_ordered(_cap_and_say, [("said on a Ray worker",)])) == [54321]
+        finally:
+            ex.close()
+    assert max_pixels() != 54321
     assert [r.getMessage() for r in caplog.records if r.name == "memlog"] == ["said on a Ray worker"]
 
 

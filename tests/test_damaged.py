@@ -280,6 +280,7 @@ def test_pixel_cap_is_checked_from_the_header(monkeypatch: pytest.MonkeyPatch) -
 
     from memlog.io.image import decode_bgr, image_size, set_max_pixels
     from memlog.io.types import ImagePayload
+    from memlog.runtime import current, use
     from tests.damage_kit import png_bomb
 
     bomb = png_bomb(32768, 32768)
@@ -291,14 +292,14 @@ def test_pixel_cap_is_checked_from_the_header(monkeypatch: pytest.MonkeyPatch) -
         data = cv2.imencode(ext, img)[1].tobytes()
         dec = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         assert image_size(data) == (dec.shape[1], dec.shape[0]), ext
-    monkeypatch.setenv("MEMLOG_MAX_PIXELS", "100000000")
-    set_max_pixels(70 * 50 - 1)  # configurable: now the small frame is over the cap
-    with pytest.raises(ImageDecodeError, match="70x50"):
-        decode_bgr(ImagePayload("compressed", "png", cv2.imencode(".png", img)[1].tobytes()))
-    with pytest.raises(ImageDecodeError, match="70x50"):
-        decode_bgr(ImagePayload("raw", "bgr8", img.tobytes(), 70, 50, 210))
-    set_max_pixels(70 * 50)
-    assert decode_bgr(ImagePayload("raw", "bgr8", img.tobytes(), 70, 50, 210)).shape == (50, 70, 3)
+    with use(current().replace(max_pixels=100_000_000)):  # the context in force now is put back after
+        set_max_pixels(70 * 50 - 1)  # configurable: now the small frame is over the cap
+        with pytest.raises(ImageDecodeError, match="70x50"):
+            decode_bgr(ImagePayload("compressed", "png", cv2.imencode(".png", img)[1].tobytes()))
+        with pytest.raises(ImageDecodeError, match="70x50"):
+            decode_bgr(ImagePayload("raw", "bgr8", img.tobytes(), 70, 50, 210))
+        set_max_pixels(70 * 50)
+        assert decode_bgr(ImagePayload("raw", "bgr8", img.tobytes(), 70, 50, 210)).shape == (50, 70, 3)
 
 
 def test_max_pixels_flag_is_checked() -> None:

@@ -19,6 +19,7 @@ from memlog.descriptors.table import DescriptorTable
 from memlog.outputs.descriptor_table import read_descriptors, write_descriptors
 from memlog.descriptors.thumbnail import ThumbnailDescriber
 from memlog.errors import DescriptorError, ModelError
+from memlog.runtime import current, use
 from memlog.evaluation.metrics import parse_truth, recall_at_n
 from memlog.descriptors.search import match
 from tests.conftest import shared
@@ -218,9 +219,8 @@ def test_dinov2_same_place_closer_than_far_place(dino: Any, winter: list[np.ndar
     assert closer.mean() > 0.6
 
 
-def test_dinov2_missing_model_names_prepare(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("MEMLOG_CACHE_DIR", str(tmp_path))
-    with pytest.raises(ModelError, match="memlog models prepare"):
+def test_dinov2_missing_model_names_prepare(tmp_path: Path) -> None:
+    with use(current().replace(cache_dir=str(tmp_path))), pytest.raises(ModelError, match="memlog models prepare"):
         make_describer("dinov2-cls")
 
 

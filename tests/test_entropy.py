@@ -14,6 +14,7 @@ from skimage.filters.rank import entropy as sk_entropy
 from skimage.morphology import disk
 
 from memlog.errors import ScoringError
+from memlog.runtime import Runtime, current, use
 from memlog.scoring import entropy as entropy_mod
 from memlog.scoring.entropy import Entropy, disk_footprint, entropy_kernel, entropy_map, entropy_score
 from tests.conftest import shared, skip_or_fail
@@ -164,24 +165,23 @@ def test_the_two_kernels_agree_on_a_camera_frame(kernel: str) -> None:
 
 
 def test_kernel_choice(monkeypatch: pytest.MonkeyPatch) -> None:
-    """``auto`` takes the compiled kernel when it is built; the environment can force numpy; asking
-    for the compiled kernel without it is a clear error, not a silent fallback."""
-    monkeypatch.delenv("MEMLOG_ENTROPY_KERNEL", raising=False)
-    built = entropy_mod._compiled() is not None
-    assert entropy_kernel() == ("c" if built else "numpy")
-    assert entropy_kernel("numpy") == "numpy"
-    monkeypatch.setenv("MEMLOG_ENTROPY_KERNEL", "numpy")
-    assert entropy_kernel() == "numpy" and Entropy(5).kernel == "numpy"
-    monkeypatch.setenv("MEMLOG_ENTROPY_KERNEL", "fortran")
-    with pytest.raises(ScoringError, match="MEMLOG_ENTROPY_KERNEL"):
-        entropy_kernel()
-    monkeypatch.delenv("MEMLOG_ENTROPY_KERNEL")
-    with pytest.raises(ScoringError, match="kernel must be one of"):
-        entropy_map(np.zeros((4, 4), np.uint8), kernel="gpu")
-    monkeypatch.setattr(entropy_mod, "_compiled", lambda: None)
-    assert entropy_kernel() == "numpy"
-    with pytest.raises(ScoringError, match="C compiler"):
-        entropy_map(np.zeros((4, 4), np.uint8), kernel="c")
+    """``auto`` takes the compiled kernel when it is built; the runtime context (the environment, for
+    the command line and the API) can force numpy; asking for the compiled kernel without it is a
+    clear error, not a silent fallback."""
+    with use(current().replace(entropy_kernel="auto")):
+        built = entropy_mod._compiled() is not None
+        assert entropy_kernel() == ("c" if built else "numpy")
+        assert entropy_kernel("numpy") == "numpy"
+        with use(Runtime.from_environment({"MEMLOG_ENTROPY_KERNEL": "numpy"})):
+            assert entropy_kernel() == "numpy" and Entropy(5).kernel == "numpy"
+        with pytest.raises(ScoringError, match="MEMLOG_ENTROPY_KERNEL"):
+            Runtime.from_environment({"MEMLOG_ENTROPY_KERNEL": "fortran"})
+        with pytest.raises(ScoringError, match="kernel must be one of"):
+            entropy_map(np.zeros((4, 4), np.uint8), kernel="gpu")
+        monkeypatch.setattr(entropy_mod, "_compiled", lambda: None)
+        assert entropy_kernel() == "numpy"
+        with pytest.raises(ScoringError, match="C compiler"):
+            entropy_map(np.zeros((4, 4), np.uint8), kernel="c")
 
 
 def test_class_is_a_thin_wrapper() -> None:

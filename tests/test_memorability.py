@@ -39,6 +39,7 @@ from memlog.models.resmem import (
     resnet_bn_layers,
 )
 from memlog.models.state_dict import load_state_dict
+from memlog.runtime import current, use
 from memlog.models.resmem import FRAME, crop_weights, crops_from_frame
 from memlog.scoring.memorability import (
     FastMemorability,
@@ -376,14 +377,14 @@ def test_state_dict_reader_refuses_bad_persistent_id_and_short_storage(tmp_path:
 
 
 def test_missing_model_names_prepare(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("MEMLOG_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(resmem, "installed_package_file", lambda *a: None)
-    with pytest.raises(ModelError, match="memlog models prepare"):
-        resmem_onnx_path()
-    with pytest.raises(ModelError, match="memlog models prepare"):
-        locate_resmem_weights()
-    with pytest.raises(ModelError, match="memlog models prepare"):
-        Memorability()
+    with use(current().replace(cache_dir=str(tmp_path))):
+        with pytest.raises(ModelError, match="memlog models prepare"):
+            resmem_onnx_path()
+        with pytest.raises(ModelError, match="memlog models prepare"):
+            locate_resmem_weights()
+        with pytest.raises(ModelError, match="memlog models prepare"):
+            Memorability()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -27,6 +27,7 @@ from memlog.errors import ModelError
 from memlog.io import open_log
 from memlog.models import quantize
 from memlog.models.fetch import sha256_file
+from memlog.runtime import current, use
 from memlog.models.quantize import (
     CALIBRATION_IMAGES,
     QUANTIZER_VERSION,
@@ -301,13 +302,12 @@ def test_quantize_rejects_bad_crops(tmp_path: Path, fp32_path: Path) -> None:
 # missing / stale model
 
 
-def test_missing_model_raises(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("MEMLOG_CACHE_DIR", str(tmp_path))
-    with pytest.raises(ModelError, match="memlog models prepare"):
+def test_missing_model_raises(tmp_path: Path) -> None:
+    with use(current().replace(cache_dir=str(tmp_path))), pytest.raises(ModelError, match="memlog models prepare"):
         resmem_int8_path()
 
 
-def test_stale_model_raises(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fp32_path: Path) -> None:
+def test_stale_model_raises(tmp_path: Path, fp32_path: Path) -> None:
     """A cached int8 file whose sidecar does not match (version, source, size, CPU) is not used."""
     models = tmp_path / "models"
     models.mkdir()
@@ -321,17 +321,17 @@ def test_stale_model_raises(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fp3
     target_side = target.with_name(target.name + ".json")
     good = {"format": 2, "quantizer_version": QUANTIZER_VERSION, "source_onnx_sha256": src_sha,
             "bytes": target.stat().st_size, "cpu_vnni": quantize.cpu_has_vnni()}
-    monkeypatch.setenv("MEMLOG_CACHE_DIR", str(tmp_path))
-    target_side.write_text(json.dumps(good))
-    assert resmem_int8_path() == target  # the cheap check accepts a matching sidecar
-    for key, bad in (("quantizer_version", "0"), ("source_onnx_sha256", "0" * 64), ("bytes", 1), ("format", 1),
-                     ("cpu_vnni", not quantize.cpu_has_vnni())):  # built for another kind of CPU
-        target_side.write_text(json.dumps({**good, key: bad}))
+    with use(current().replace(cache_dir=str(tmp_path))):
+        target_side.write_text(json.dumps(good))
+        assert resmem_int8_path() == target  # the cheap check accepts a matching sidecar
+        for key, bad in (("quantizer_version", "0"), ("source_onnx_sha256", "0" * 64), ("bytes", 1), ("format", 1),
+                         ("cpu_vnni", not quantize.cpu_has_vnni())):  # built for another kind of CPU
+            target_side.write_text(json.dumps({**good, key: bad}))
+            with pytest.raises(ModelError, match="memlog models prepare"):
+                resmem_int8_path()
+        target_side.unlink()
         with pytest.raises(ModelError, match="memlog models prepare"):
             resmem_int8_path()
-    target_side.unlink()
-    with pytest.raises(ModelError, match="memlog models prepare"):
-        resmem_int8_path()
 
 
 def test_whole_frame_fit_bounds_held_out_frames(int8_path: Path, fp32_path: Path) -> None:

@@ -19,6 +19,7 @@ from memlog.errors import LogReadError
 from memlog.io.image import max_pixels, set_max_pixels
 from memlog.io.open import open_log
 from memlog.progress import info, is_quiet, warning
+from memlog.runtime import current, use
 from memlog.steps.parallel import Processes
 from tests.conftest import FIXTURES, ROOT, shared
 
@@ -60,14 +61,14 @@ def test_local_workers_are_spawned_not_forked(monkeypatch: pytest.MonkeyPatch) -
 
 
 @pytest.mark.parametrize("quiet", [True, False])
-def test_quiet_and_the_pixel_cap_reach_the_workers(quiet: bool, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("MEMLOG_MAX_PIXELS", str(max_pixels()))  # restored after the test
-    set_max_pixels(12345)
-    ex = Processes(2, quiet=quiet)
-    try:
-        (_, _, got_quiet, cap), = ex.map_ordered(_what_the_worker_sees, [()])
-    finally:
-        ex.close()
+def test_quiet_and_the_pixel_cap_reach_the_workers(quiet: bool) -> None:
+    with use(current()):  # the runtime context in force now is put back after the test
+        set_max_pixels(12345)
+        ex = Processes(2, quiet=quiet)
+        try:
+            (_, _, got_quiet, cap), = ex.map_ordered(_what_the_worker_sees, [()])
+        finally:
+            ex.close()
     assert (got_quiet, cap) == (quiet, 12345)
 
 

@@ -25,6 +25,7 @@ from memlog.cli.common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE,
 from memlog.cli.flags import GROUPS
 from memlog.errors import MemlogError, UsageError
 from memlog.progress import LOGGER, set_quiet
+from memlog.runtime import Runtime, current, use
 
 __all__ = ["main", "build_parser"]
 
@@ -94,13 +95,28 @@ def _on_sigterm(signum: int, frame: Any) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the ``memlog`` command line; returns the exit code."""
+    """Run the ``memlog`` command line; returns the exit code. The environment is read here, once:
+    the runtime context it asks for (:meth:`memlog.runtime.Runtime.from_environment`, with this
+    process's caches) is in force while the command runs (``--max-pixels`` replaces it)."""
+    try:
+        asked, problem = Runtime.from_environment(os.environ), None
+    except MemlogError as exc:  # said once the command line is read (--help, --version still work)
+        asked, problem = current(), exc
+    with use(current().with_settings_of(asked)):
+        return _run(argv, problem)
+
+
+def _run(argv: Sequence[str] | None, problem: MemlogError | None) -> int:
+    """:func:`main` within its runtime context; ``problem``: what was wrong in the environment."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
     show_messages(bool(args.quiet))
+    if problem is not None:
+        print(f"memlog: error: {problem}", file=sys.stderr)
+        return EXIT_USAGE if isinstance(problem, UsageError) else EXIT_ERROR
     signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return int(args.func(args))
@@ -122,7 +138,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:  # a bug, not bad input: say so without a traceback unless asked
         import traceback
 
-        if os.environ.get("MEMLOG_DEBUG"):
+        if current().debug:
             traceback.print_exc()
         print(f"memlog: internal error: {type(exc).__name__}: {exc} (set MEMLOG_DEBUG=1 for a traceback; "
               "please report it)", file=sys.stderr)

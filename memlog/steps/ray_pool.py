@@ -32,6 +32,7 @@ from typing import Any, NamedTuple, TypeVar
 
 from memlog._version import __version__
 from memlog.errors import ConfigError, MemlogError
+from memlog.runtime import Runtime, current, install
 from memlog.steps.parallel import Job, cpu_count, log_levels, replay, run_job, worker_setup
 
 __all__ = ["RAY_INSTALL", "ray_available", "require_ray", "connect", "Node", "cluster_nodes", "NodePlacement",
@@ -69,22 +70,24 @@ def require_ray(flag: str = "--ray") -> None:
 
 def connect(address: str | None = None, *, quiet: bool = True) -> bool:
     """Connect this process to Ray: the cluster at ``address`` (``auto``, ``ray://HOST:10001``,
-    ``HOST:6379``), or else ``$RAY_ADDRESS``, or else a new local instance with this machine's
-    cores. A process already connected (a notebook, a test) is used as it is. Returns whether this
-    call connected, i.e. whether the caller should ``ray.shutdown()`` when done."""
+    ``HOST:6379``), or else the runtime context's ``ray_address`` (:func:`memlog.runtime.current`;
+    ``$RAY_ADDRESS`` for the command line and the API), or else a new local instance with this
+    machine's cores. A process already connected (a notebook, a test) is used as it is. Returns
+    whether this call connected, i.e. whether the caller should ``ray.shutdown()`` when done."""
     require_ray()
     ray = _ray()
 
     if ray.is_initialized():
         return False
     kw: dict[str, Any] = {"logging_level": logging.WARNING if quiet else logging.INFO, "log_to_driver": not quiet}
+    target = address if address is not None else current().ray_address
     try:
-        if address is None and not os.environ.get("RAY_ADDRESS"):
+        if not target:
             ray.init(num_cpus=cpu_count(), include_dashboard=False, **kw)
         else:
-            ray.init(address=address, **kw)
+            ray.init(address=target, **kw)
     except Exception as exc:  # Ray raises ConnectionError, RuntimeError, ValueError...
-        where = address or os.environ.get("RAY_ADDRESS") or "a local instance"
+        where = target or "a local instance"
         raise ConfigError(f"--ray {address or ''}".rstrip() + f": could not connect to Ray ({where}): {exc}") from None
     return True
 
@@ -221,14 +224,14 @@ def plan_placement(nodes: Sequence[Node], *, workers: int | None = None, threads
 
 class _Worker:
     """One Ray actor: a worker process that runs jobs; models stay in its process cache. Ray
-    starts it afresh (on any node), so it is given what the driver's settings say: the pixel cap
-    and the levels of the ``memlog`` loggers (what its jobs log goes back with their results)."""
+    starts it afresh (on any node), so it is given what the driver's settings say: its runtime
+    context (the pixel cap, the entropy kernel choice, the model cache's bound; the model cache
+    directory stays the node's own) and the levels of the ``memlog`` loggers (what its jobs log goes
+    back with their results)."""
 
-    def __init__(self, threads: int, max_pixels: int, levels: dict[str, int]) -> None:
-        from memlog.io.image import set_max_pixels
-
+    def __init__(self, threads: int, runtime: Runtime, levels: dict[str, int]) -> None:
+        install(runtime.replace(cache_dir=current().cache_dir))  # models are where this node keeps them
         worker_setup(True, levels)
-        set_max_pixels(max_pixels)
         try:
             import cv2
 
@@ -240,9 +243,10 @@ class _Worker:
         """Who this worker is; raises the model layer's error when ``device`` cannot be used here."""
         from memlog.models.runtime import choose_providers
 
-        return {"pid": os.getpid(), "host": platform.node(), "node": _ray().get_runtime_context().get_node_id(),
+        context = _ray().get_runtime_context()
+        return {"pid": os.getpid(), "host": platform.node(), "node": context.get_node_id(),
                 "memlog": __version__, "providers": choose_providers(device),
-                "gpus": os.environ.get("CUDA_VISIBLE_DEVICES")}
+                "gpus": [str(g) for g in context.get_accelerator_ids().get("GPU", [])]}
 
     def run(self, fn: Callable[..., Any], job: Job) -> tuple[int, Any, list[logging.LogRecord]]:
         result, records = run_job(fn, job)
@@ -273,16 +277,14 @@ class RayActors:
         self.ahead = ahead if ahead is not None else depth * placement.actors
         self.restarts = 0
         affinity = importlib.import_module("ray.util.scheduling_strategies").NodeAffinitySchedulingStrategy
-        from memlog.io.image import max_pixels
-
         cls = ray.remote(_Worker)
-        cap, levels = max_pixels(), log_levels()  # the driver's settings, which a Ray worker does not inherit
+        runtime, levels = current(), log_levels()  # the driver's settings, which a Ray worker does not inherit
         self._actors = []
         for group in placement.nodes or (NodePlacement("", placement.actors, placement.gpus),):
             pin = {"scheduling_strategy": affinity(group.node, soft=True)} if group.node else {}
             one = cls.options(num_cpus=placement.threads, num_gpus=group.gpus, max_restarts=-1,
                               max_task_retries=max_retries, **pin)
-            self._actors += [one.remote(placement.threads, cap, levels) for _ in range(group.actors)]
+            self._actors += [one.remote(placement.threads, runtime, levels) for _ in range(group.actors)]
         try:
             self.info = ray.get([a.info.remote(device) for a in self._actors], timeout=start_timeout_s)
         except ray.exceptions.GetTimeoutError:
