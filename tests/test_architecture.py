@@ -13,12 +13,13 @@ ROOT = Path(__file__).resolve().parent.parent / "memlog"
 
 #: Layers from the bottom; a module may import only from its own layer or lower ones.
 LAYERS: list[tuple[str, ...]] = [
-    ("memlog._version", "memlog.errors", "memlog.progress", "memlog.configfile"),
+    ("memlog._version", "memlog.errors", "memlog.progress", "memlog.configfile", "memlog.settings", "memlog.runtime"),
     ("memlog.io",),
     ("memlog.models",),
     ("memlog.scoring",),
     ("memlog.selection",),
     ("memlog.descriptors",),
+    ("memlog.matching",),
     ("memlog.evaluation",),
     ("memlog.outputs",),
     ("memlog.steps",),
@@ -192,3 +193,62 @@ def test_threads_have_their_own_progress_settings() -> None:
     for t in ts:
         t.join()
     assert seen == {"a": ["a", "a"], "b": ["quiet=False", "b", "b", "b"]}
+
+
+#: Issue 41's limits: a function a reader takes in at once, a module one job.
+MAX_FUNCTION_LINES = 100
+MAX_MODULE_LINES = 700
+
+
+
+def _long_functions(source: str, limit: int) -> list[tuple[str, int, int]]:
+    """(name, first line, lines) of every function or method of ``source`` longer than ``limit`` lines
+    (decorators not counted)."""
+    return [(node.name, node.lineno, node.end_lineno - node.lineno + 1)
+            for node in ast.walk(ast.parse(source))
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno is not None
+            and node.end_lineno - node.lineno + 1 > limit]
+
+
+def _environment_reads(source: str) -> list[int]:
+    """Lines of ``source`` that read the process environment: ``os.environ`` (any use), ``os.getenv``,
+    ``environ`` or ``getenv`` imported from ``os``."""
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Attribute) and node.attr in ("environ", "getenv", "environb", "getenvb") \
+                and isinstance(node.value, ast.Name) and node.value.id == "os":
+            lines.append(node.lineno)
+        if isinstance(node, ast.ImportFrom) and node.module == "os" and \
+                any(a.name in ("environ", "getenv", "environb", "getenvb") for a in node.names):
+            lines.append(node.lineno)
+    return lines
+
+
+def test_no_function_over_the_limit() -> None:
+    found = [f"{name}.{fn} (line {line}): {n} lines" for name, path in sorted(MODULES.items())
+             for fn, line, n in _long_functions(path.read_text(encoding="utf-8"), MAX_FUNCTION_LINES)]
+    assert not found, f"functions over {MAX_FUNCTION_LINES} lines: {found}"
+
+
+def test_no_module_over_the_limit() -> None:
+    found = [f"{name}: {n} lines" for name, path in sorted(MODULES.items())
+             if (n := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES]
+    assert not found, f"modules over {MAX_MODULE_LINES} lines: {found}"
+
+
+def test_only_the_cli_and_the_api_read_the_environment() -> None:
+    found = [f"{name}:{line}" for name, path in sorted(MODULES.items())
+             if not (name == "memlog" or name.startswith("memlog.cli"))
+             for line in _environment_reads(path.read_text(encoding="utf-8"))]
+    assert not found, f"library code reads the environment (pass a memlog.runtime.Runtime instead): {found}"
+
+
+def test_the_limit_checks_can_fail() -> None:
+    """The checks above see what they look for."""
+    long_fn = "def f():\n" + "    x = 1\n" * 120
+    assert _long_functions(long_fn, MAX_FUNCTION_LINES) == [("f", 1, 121)]
+    assert _long_functions("def g():\n    return 1\n", MAX_FUNCTION_LINES) == []
+    assert _environment_reads("import os\nv = os.environ.get('X')\n") == [2]
+    assert _environment_reads("import os\nv = os.getenv('X')\n") == [2]
+    assert _environment_reads("from os import environ\n") == [1]
+    assert _environment_reads("import os\nv = os.path.join('a')\n") == []

@@ -304,6 +304,84 @@ def _crops_sha256(crops: F32) -> str:
     return hashlib.sha256(np.ascontiguousarray(crops, dtype=np.float32).tobytes()).hexdigest()
 
 
+def _check_quantize_inputs(fp32_path: Path, crops: F32) -> None:
+    """Raise :class:`ModelError` unless ``crops`` are non-empty float32 [N,3,227,227] and the
+    fp32 model exists."""
+    if not isinstance(crops, np.ndarray) or crops.ndim != 4 or crops.shape[1:] != (3, CROP, CROP):
+        raise ModelError(f"calibration crops must be [N,3,{CROP},{CROP}], got {getattr(crops, 'shape', None)}")
+    if crops.dtype != np.float32 or len(crops) == 0:
+        raise ModelError(f"calibration crops must be a non-empty float32 array, got {crops.dtype} x {len(crops)}")
+    if not fp32_path.is_file():
+        raise ModelError(f"ResMem ONNX model {fp32_path} not found; run `memlog models prepare`")
+
+
+def _quantize_static(fp32_path: Path, pre: Path, qtmp: Path, crops: F32, exclude: list[str],
+                     reduce_range: bool) -> None:
+    """Run onnxruntime's static quantisation of the pre-processed model ``pre`` to ``qtmp`` with
+    :data:`SETTINGS`, calibrated on ``crops``, keeping the ``exclude`` nodes in float32;
+    :class:`ModelError` naming ``fp32_path`` when it fails."""
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+
+    reader = _CropReader(np.ascontiguousarray(crops), _CAL_BATCH)
+    try:
+        # onnxruntime's histogram calibrators print a line per batch on stdout
+        with contextlib.redirect_stdout(io.StringIO()):
+            quantize_static(
+                str(pre),
+                str(qtmp),
+                reader,
+                quant_format=QuantFormat.QDQ,
+                per_channel=bool(SETTINGS["per_channel"]),
+                reduce_range=reduce_range,
+                activation_type=QuantType.QUInt8,
+                weight_type=QuantType.QInt8,
+                nodes_to_exclude=exclude,
+                calibrate_method=CalibrationMethod.Percentile,
+                extra_options={
+                    "CalibPercentile": float(SETTINGS["percentile"]),
+                    # one batch per collection round: bounded memory. (Not
+                    # CalibMaxIntermediateOutputs: with MinMax it drops every range but the
+                    # last round's, onnxruntime issue #18893.)
+                    "CalibStridedMinMax": 1,
+                },
+            )
+    except Exception as exc:  # onnxruntime raises many exception types
+        raise ModelError(f"int8 quantisation of {fp32_path} failed: {exc}") from exc
+
+
+def _int8_sidecar(fp32_path: Path, src_sha: str, reduce_range: bool, n_excluded: int, crops: F32,
+                  calibration: dict[str, Any] | None, val: F32, val_from_caller: bool,
+                  err: dict[str, float], seconds: float) -> dict[str, Any]:
+    """The int8 model's cache sidecar: its source, settings, calibration and validation sets, the
+    measured errors and the error bounds fast mode uses."""
+    import onnxruntime
+
+    return {
+        "description": f"ResMem {RESMEM_VERSION} int8 (memlog fast mode)",
+        "quantizer_version": QUANTIZER_VERSION,
+        "source_onnx": fp32_path.name,
+        "source_onnx_sha256": src_sha,
+        "onnxruntime_version": onnxruntime.__version__,
+        "settings": SETTINGS,
+        "reduce_range_used": reduce_range,
+        "cpu_vnni": cpu_has_vnni(),
+        "n_nodes_excluded": n_excluded,
+        "calibration": {
+            **(calibration or {}),
+            "n_crops": len(crops),
+            "crops_sha256": _crops_sha256(crops),
+        },
+        "validation": {"n_crops": len(val), "crops_sha256": _crops_sha256(val),
+                       "source": "caller" if val_from_caller else "validation_crops()"},
+        "crop_error": err,
+        "epsilon": min(1.0, float(SETTINGS["bound_factor"]) * err["max"]),
+        "delta": min(1.0, float(SETTINGS["bound_factor"]) * err["frame_max"]),
+        "seconds": seconds,
+        "inputs": {INPUT_NAME: ["N", 3, CROP, CROP]},
+        "outputs": {OUTPUT_NAME: ["N", 1], FEATURES_NAME: ["N", 2048]},
+    }
+
+
 def quantize_resmem(
     fp32_path: Path,
     out_path: Path,
@@ -324,21 +402,10 @@ def quantize_resmem(
     are written atomically; intermediate files live in a temporary directory beside
     ``out_path``. Returns ``out_path``.
     """
-    from onnxruntime.quantization import (
-        CalibrationMethod,
-        QuantFormat,
-        QuantType,
-        quant_pre_process,
-        quantize_static,
-    )
+    from onnxruntime.quantization import quant_pre_process
 
     fp32_path, out_path = Path(fp32_path), Path(out_path)
-    if not isinstance(crops, np.ndarray) or crops.ndim != 4 or crops.shape[1:] != (3, CROP, CROP):
-        raise ModelError(f"calibration crops must be [N,3,{CROP},{CROP}], got {getattr(crops, 'shape', None)}")
-    if crops.dtype != np.float32 or len(crops) == 0:
-        raise ModelError(f"calibration crops must be a non-empty float32 array, got {crops.dtype} x {len(crops)}")
-    if not fp32_path.is_file():
-        raise ModelError(f"ResMem ONNX model {fp32_path} not found; run `memlog models prepare`")
+    _check_quantize_inputs(fp32_path, crops)
     src_sha = cache.recorded_sha256(fp32_path) or sha256_file(fp32_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -349,60 +416,12 @@ def quantize_resmem(
         exclude = _nodes_to_exclude(pre)
         qtmp = tmp / "int8.onnx"
         reduce_range = _reduce_range()
-        reader = _CropReader(np.ascontiguousarray(crops), _CAL_BATCH)
-        try:
-            # onnxruntime's histogram calibrators print a line per batch on stdout
-            with contextlib.redirect_stdout(io.StringIO()):
-                quantize_static(
-                    str(pre),
-                    str(qtmp),
-                    reader,
-                    quant_format=QuantFormat.QDQ,
-                    per_channel=bool(SETTINGS["per_channel"]),
-                    reduce_range=reduce_range,
-                    activation_type=QuantType.QUInt8,
-                    weight_type=QuantType.QInt8,
-                    nodes_to_exclude=exclude,
-                    calibrate_method=CalibrationMethod.Percentile,
-                    extra_options={
-                        "CalibPercentile": float(SETTINGS["percentile"]),
-                        # one batch per collection round: bounded memory. (Not
-                        # CalibMaxIntermediateOutputs: with MinMax it drops every range but the
-                        # last round's, onnxruntime issue #18893.)
-                        "CalibStridedMinMax": 1,
-                    },
-                )
-        except Exception as exc:  # onnxruntime raises many exception types
-            raise ModelError(f"int8 quantisation of {fp32_path} failed: {exc}") from exc
+        _quantize_static(fp32_path, pre, qtmp, crops, exclude, reduce_range)
         val = validation_crops() if validation is None else validation
         err = crop_error(fp32_path, qtmp, val)
         data = qtmp.read_bytes()
-    import onnxruntime
-
-    side = {
-        "description": f"ResMem {RESMEM_VERSION} int8 (memlog fast mode)",
-        "quantizer_version": QUANTIZER_VERSION,
-        "source_onnx": fp32_path.name,
-        "source_onnx_sha256": src_sha,
-        "onnxruntime_version": onnxruntime.__version__,
-        "settings": SETTINGS,
-        "reduce_range_used": reduce_range,
-        "cpu_vnni": cpu_has_vnni(),
-        "n_nodes_excluded": len(exclude),
-        "calibration": {
-            **(calibration or {}),
-            "n_crops": len(crops),
-            "crops_sha256": _crops_sha256(crops),
-        },
-        "validation": {"n_crops": len(val), "crops_sha256": _crops_sha256(val),
-                       "source": "validation_crops()" if validation is None else "caller"},
-        "crop_error": err,
-        "epsilon": min(1.0, float(SETTINGS["bound_factor"]) * err["max"]),
-        "delta": min(1.0, float(SETTINGS["bound_factor"]) * err["frame_max"]),
-        "seconds": round(time.perf_counter() - t0, 1),
-        "inputs": {INPUT_NAME: ["N", 3, CROP, CROP]},
-        "outputs": {OUTPUT_NAME: ["N", 1], FEATURES_NAME: ["N", 2048]},
-    }
+    side = _int8_sidecar(fp32_path, src_sha, reduce_range, len(exclude), crops, calibration, val,
+                         validation is not None, err, round(time.perf_counter() - t0, 1))
     cache.write_model(out_path, data, side)
     if not quiet:
         info(f"wrote {out_path} ({side['seconds']} s)")

@@ -16,7 +16,7 @@ from __future__ import annotations
 import base64
 import html
 import os
-from collections.abc import Callable, Collection, Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -31,21 +31,13 @@ from memlog.evaluation.metrics import ProtocolResult
 from memlog.io.atomic import write_bytes_atomic
 from memlog.io.open import open_log
 from memlog.io.positions import geo_origin, geo_to_local
+from memlog.outputs.svg_charts import svg_histogram, svg_lines
+from memlog.outputs.svg_charts import svg_timeline as svg_timeline
 from memlog.progress import warning
 from memlog.selection import ScoreTable, Selection
 
 __all__ = ["write_report", "svg_lines", "svg_histogram", "svg_strip", "query_outcomes", "QueryOutcome",
            "settings_rows", "shown_path", "GALLERY_QUERIES"]
-
-_COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"]
-
-
-def _scale(a0: float, a1: float, b0: float, b1: float) -> Callable[[float], float]:
-    """The linear map taking a0..a1 to b0..b1 (data to pixels)."""
-    def f(v: float) -> float:
-        return b0 + (float(v) - a0) / (a1 - a0) * (b1 - b0)
-
-    return f
 
 
 def _fmt(v: float) -> str:
@@ -57,79 +49,6 @@ def _spread(rows: list[int], n: int = 24) -> list[int]:
     if not rows:
         return []
     return [rows[i] for i in np.linspace(0, len(rows) - 1, min(n, len(rows))).astype(int)]
-
-
-def svg_lines(series: Sequence[tuple[str, Sequence[float], Sequence[float]]], *, title: str, xlabel: str,
-              ylabel: str, w: int = 420, h: int = 280, xlim: tuple[float, float] | None = None,
-              ylim: tuple[float, float] | None = None, marks: Sequence[float] = ()) -> str:
-    """A small line chart; ``series`` = (label, xs, ys)."""
-    pad_l, pad_b, pad_t, pad_r = 48, 36, 24, 10
-    xs_all = [x for _, xs, _ in series for x in xs] or [0.0, 1.0]
-    ys_all = [y for _, _, ys in series for y in ys if np.isfinite(y)] or [0.0, 1.0]
-    x0, x1 = xlim or (min(xs_all), max(xs_all))
-    y0, y1 = ylim or (min(ys_all), max(ys_all))
-    x1 = x1 if x1 > x0 else x0 + 1
-    y1 = y1 if y1 > y0 else y0 + 1
-    sx = _scale(x0, x1, pad_l, w - pad_r)
-    sy = _scale(y0, y1, h - pad_b, pad_t)
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-size="11" font-family="sans-serif">',
-             f'<text x="{w / 2}" y="14" text-anchor="middle" font-weight="bold">{html.escape(title)}</text>',
-             f'<line x1="{pad_l}" y1="{h - pad_b}" x2="{w - pad_r}" y2="{h - pad_b}" stroke="#333"/>',
-             f'<line x1="{pad_l}" y1="{pad_t}" x2="{pad_l}" y2="{h - pad_b}" stroke="#333"/>',
-             f'<text x="{w / 2}" y="{h - 4}" text-anchor="middle">{html.escape(xlabel)}</text>',
-             f'<text x="12" y="{h / 2}" text-anchor="middle" transform="rotate(-90 12 {h / 2})">{html.escape(ylabel)}</text>']
-    for t in np.linspace(x0, x1, 5):
-        parts.append(f'<text x="{sx(t):.1f}" y="{h - pad_b + 13}" text-anchor="middle">{t:.3g}</text>')
-    for t in np.linspace(y0, y1, 5):
-        parts.append(f'<text x="{pad_l - 4}" y="{sy(t) + 4:.1f}" text-anchor="end">{t:.3g}</text>')
-    for m in marks:
-        parts.append(f'<line x1="{sx(m):.1f}" y1="{pad_t}" x2="{sx(m):.1f}" y2="{h - pad_b}" stroke="#bbb" stroke-dasharray="3,3"/>')
-    for i, (label, xs, ys) in enumerate(series):
-        pts = " ".join(f"{sx(x):.1f},{sy(y):.1f}" for x, y in zip(xs, ys) if np.isfinite(y))
-        c = _COLORS[i % len(_COLORS)]
-        parts.append(f'<polyline fill="none" stroke="{c}" stroke-width="1.5" points="{pts}"/>')
-        parts.append(f'<text x="{w - pad_r - 4}" y="{pad_t + 12 + 13 * i}" text-anchor="end" fill="{c}">{html.escape(label)}</text>')
-    parts.append("</svg>")
-    return "".join(parts)
-
-
-def svg_histogram(values: np.ndarray, *, title: str, bins: int = 20, w: int = 280, h: int = 180,
-                  threshold: float | None = None, rng: tuple[float, float] = (0.0, 1.0)) -> str:
-    v = values[np.isfinite(values)]
-    counts, edges = np.histogram(v, bins=bins, range=rng)
-    top = max(int(counts.max()) if counts.size else 1, 1)
-    pad_b, pad_t = 24, 20
-    bw = (w - 20) / bins
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-size="11" font-family="sans-serif">',
-             f'<text x="{w / 2}" y="13" text-anchor="middle" font-weight="bold">{html.escape(title)} (n={len(v)})</text>']
-    for i, c in enumerate(counts):
-        bh = c / top * (h - pad_b - pad_t)
-        parts.append(f'<rect x="{10 + i * bw:.1f}" y="{h - pad_b - bh:.1f}" width="{bw - 1:.1f}" height="{bh:.1f}" fill="#1f77b4"/>')
-    if threshold is not None:
-        x = 10 + (threshold - rng[0]) / (rng[1] - rng[0]) * (w - 20)
-        parts.append(f'<line x1="{x:.1f}" y1="{pad_t}" x2="{x:.1f}" y2="{h - pad_b}" stroke="#d62728" stroke-width="2"/>')
-    parts.append(f'<text x="10" y="{h - 6}">{rng[0]:g}</text><text x="{w - 10}" y="{h - 6}" text-anchor="end">{rng[1]:g}</text>')
-    parts.append("</svg>")
-    return "".join(parts)
-
-
-def svg_timeline(table: ScoreTable, sel: Selection, w: int = 900, h: int = 240) -> str:
-    """Scores over frame index; kept frames as ticks; gaps shaded."""
-    x = [float(v) for v in table.index]
-    series = [("MS", x, list(table.ms)), ("SS", x, list(table.ss)), ("ES", x, list(table.es))]
-    svg = svg_lines(series, title="drive timeline: scores per frame (ticks: kept frames, shaded: gaps)",
-                    xlabel="frame index", ylabel="score", w=w, h=h, ylim=(0.0, 1.0))
-    pad_l, pad_r, pad_b, pad_t = 48, 10, 36, 24
-    x0, x1 = (min(x), max(x)) if x else (0.0, 1.0)
-    x1 = x1 if x1 > x0 else x0 + 1
-    sx = _scale(x0, x1, pad_l, w - pad_r)
-    extra = []
-    for g in sel.gaps:
-        extra.append(f'<rect x="{sx(g.start_index):.1f}" y="{pad_t}" width="{max(1.0, sx(g.end_index) - sx(g.start_index)):.1f}" '
-                     f'height="{h - pad_b - pad_t}" fill="#d62728" opacity="0.15"/>')
-    for i in table.index[sel.keep]:
-        extra.append(f'<line x1="{sx(i):.1f}" y1="{h - pad_b}" x2="{sx(i):.1f}" y2="{h - pad_b - 8}" stroke="#000"/>')
-    return svg.replace("</svg>", "".join(extra) + "</svg>")
 
 
 def _thumbs(log: str, topic: str, indices: set[int], width: int = 160) -> dict[int, str]:
@@ -302,6 +221,23 @@ def _conf_text(c: float) -> str:
     return "no match" if not np.isfinite(c) else f"confidence {c:.3g}"
 
 
+def _confidence_bars(norm: np.ndarray, edges: np.ndarray, x0: float, cw: float, top: int, height: int,
+                     lo: float, hi: float) -> list[str]:
+    """The strip's confidence row: one bar per cell (``edges``: its rows; ``norm``: each row's
+    confidence scaled to 0..1, 0 for no match) of width ``cw`` from ``x0``, as one SVG path (none
+    when every bar is empty)."""
+    bars = []
+    for b in range(len(edges) - 1):
+        v = float(norm[edges[b]:edges[b + 1]].mean())
+        if v > 0:
+            bh = max(1.0, v * height)
+            bars.append(f"M{x0 + b * cw:.2f},{top + height}v{-bh:.2f}h{cw:.2f}v{bh:.2f}z")
+    if not bars:
+        return []
+    return [(f'<path class="confidence" d="{"".join(bars)}" fill="#555"><title>confidence of the reported '
+             f'match, {lo:.3g} (bottom) to {hi:.3g} (top)</title></path>')]
+
+
 def svg_strip(outcomes: Sequence[QueryOutcome], *, marks: Collection[int] = (), w: int = 1000) -> str:
     """The correctness strip: one cell per query frame in drive order (``outcomes`` as
     :func:`query_outcomes` gives them), coloured by kind, with each query's confidence as a bar
@@ -358,16 +294,8 @@ def svg_strip(outcomes: Sequence[QueryOutcome], *, marks: Collection[int] = (), 
                              f'height="{hk:.2f}" fill="{_KINDS[k][2]}"><title>{html.escape(tip)}</title></rect>')
                 y += hk
         b += 1
-    bars = []
-    for b in range(cols):
-        v = float(norm[edges[b]:edges[b + 1]].mean())
-        if v > 0:
-            bh = max(1.0, v * conf_h)
-            bars.append(f"M{pad_l + b * cw:.2f},{conf_t + conf_h}v{-bh:.2f}h{cw:.2f}v{bh:.2f}z")
     parts.append(f'<rect x="{pad_l}" y="{conf_t}" width="{w - pad_l - pad_r}" height="{conf_h}" fill="#f4f4f4"/>')
-    if bars:
-        parts.append(f'<path class="confidence" d="{"".join(bars)}" fill="#555"><title>confidence of the reported '
-                     f'match, {lo:.3g} (bottom) to {hi:.3g} (top)</title></path>')
+    parts += _confidence_bars(norm, edges, pad_l, cw, conf_t, conf_h, lo, hi)
     parts.append(f'<text x="{pad_l - 6}" y="{band_t + band_h / 2 + 4}" text-anchor="end">outcome</text>'
                  f'<text x="{pad_l - 6}" y="{conf_t + conf_h / 2 + 4}" text-anchor="end">confidence</text>'
                  f'<text x="{pad_l - 6}" y="{conf_t + conf_h + 18}" text-anchor="end">frame</text>')
@@ -523,19 +451,11 @@ def _failures(per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]], ref
     return outcomes, _worst_first(outcomes, max_queries)
 
 
-def write_report(path: Path, results: dict[str, Any], table: ScoreTable, sel: Selection,
-                 per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]], ref_t: DescriptorTable,
-                 reference: str, topic: str, *, query: str | None = None, query_topic: str | None = None,
-                 query_table: DescriptorTable | None = None, truth: Sequence[Collection[int]] | None = None,
-                 max_queries: int = GALLERY_QUERIES) -> Path:
-    """Write the self-contained HTML report (atomically).
-
-    ``query``/``query_topic``/``query_table`` (the query drive's descriptor table: its frame
-    indices and positions) and ``truth`` (each query row's true reference rows) give the strip
-    and the gallery of queries (under the memorable map, map-only: ``per_variant["memorable"]``);
-    without them the report says where they would be."""
-    base = path.parent
-    th = sel.thresholds or {}
+def _plots(results: dict[str, Any], table: ScoreTable,
+           per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]],
+           th: Mapping[str, Any]) -> tuple[list[str], list[str], list[str]]:
+    """The report's charts as SVG: the PR curves (map-only, paper protocol), the threshold sweeps
+    (or why there are none) and the score histograms with their thresholds."""
     pr = [svg_lines([(name, list(mo.curve.recall), list(mo.curve.precision)) for name, (mo, _) in per_variant.items()],
                     title="PR curves (map-only)", xlabel="recall", ylabel="precision", xlim=(0, 1), ylim=(0, 1)),
           svg_lines([(name, list(po.curve.recall), list(po.curve.precision)) for name, (_, po) in per_variant.items()],
@@ -553,6 +473,44 @@ def write_report(path: Path, results: dict[str, Any], table: ScoreTable, sel: Se
     hists = [svg_histogram(table.ms, title="MS", threshold=th.get("mt")),
              svg_histogram(table.ss, title="SS", threshold=th.get("st")),
              svg_histogram(table.es, title="ES", threshold=th.get("et"))]
+    return pr, sweeps, hists
+
+
+def _where_html(fails: tuple[list[QueryOutcome], list[QueryOutcome]] | None, sel: Selection,
+                q_thumbs: dict[int, str], r_thumbs: dict[int, str]) -> str:
+    """The section "where localization fails": the summary, the strip and the gallery of queries
+    (``fails`` as :func:`_failures` gives it), or why it is not available."""
+    if fails is None:
+        return ("<p id='no-failures'>Not available: the report was written without the query drive's frames "
+                "and truth.</p>")
+    outcomes, shown = fails
+    counts = np.bincount([o.kind for o in outcomes], minlength=len(_KINDS))
+    summary = ", ".join(f"{int(c)} {label}" for (_, label, _), c in zip(_KINDS, counts))
+    return (f"<p>The memorable map ({int(sel.n_kept)} frames), map-only protocol, as the main results. "
+            f"Of {len(outcomes)} query frames: {html.escape(summary)}. Hover a cell for its frames.</p>"
+            f"<div class='strip-box' id='strip'>{svg_strip(outcomes, marks={o.frame for o in shown})}"
+            f"{_legend()}</div>"
+            f"<h3>Gallery of queries: worst first</h3><p>{len(shown)} of {len(outcomes)} query frames: the wrong "
+            "ones with the highest confidence first, then the right ones, least confident first. Each: the "
+            "query frame, the map frame the matcher chose, and the true map frame nearest the query (a "
+            "discarded reference frame when none of its true places is in the map).</p>"
+            + _query_gallery(shown, q_thumbs, r_thumbs))
+
+
+def write_report(path: Path, results: dict[str, Any], table: ScoreTable, sel: Selection,
+                 per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]], ref_t: DescriptorTable,
+                 reference: str, topic: str, *, query: str | None = None, query_topic: str | None = None,
+                 query_table: DescriptorTable | None = None, truth: Sequence[Collection[int]] | None = None,
+                 max_queries: int = GALLERY_QUERIES) -> Path:
+    """Write the self-contained HTML report (atomically).
+
+    ``query``/``query_topic``/``query_table`` (the query drive's descriptor table: its frame
+    indices and positions) and ``truth`` (each query row's true reference rows) give the strip
+    and the gallery of queries (under the memorable map, map-only: ``per_variant["memorable"]``);
+    without them the report says where they would be."""
+    base = path.parent
+    th = sel.thresholds or {}
+    pr, sweeps, hists = _plots(results, table, per_variant, th)
     kept_rows = [int(r) for r in np.nonzero(sel.keep)[0]]
     drop_rows = [int(r) for r in np.nonzero(~sel.keep)[0]]
     kr, dr = _spread(kept_rows), _spread(drop_rows)
@@ -565,23 +523,7 @@ def write_report(path: Path, results: dict[str, Any], table: ScoreTable, sel: Se
         wanted[ref_key] |= {f for o in fails[1] for f in (o.chosen, o.true) if f >= 0}
         wanted.setdefault(q_key, set()).update(o.frame for o in fails[1])
     thumbs = {(log, tp): _thumbs(log, tp, idx) for (log, tp), idx in wanted.items()}
-
-    if fails is None:
-        where = ("<p id='no-failures'>Not available: the report was written without the query drive's frames "
-                 "and truth.</p>")
-    else:
-        outcomes, shown = fails
-        counts = np.bincount([o.kind for o in outcomes], minlength=len(_KINDS))
-        summary = ", ".join(f"{int(c)} {label}" for (_, label, _), c in zip(_KINDS, counts))
-        where = (f"<p>The memorable map ({int(sel.n_kept)} frames), map-only protocol, as the main results. "
-                 f"Of {len(outcomes)} query frames: {html.escape(summary)}. Hover a cell for its frames.</p>"
-                 f"<div class='strip-box' id='strip'>{svg_strip(outcomes, marks={o.frame for o in shown})}"
-                 f"{_legend()}</div>"
-                 f"<h3>Gallery of queries: worst first</h3><p>{len(shown)} of {len(outcomes)} query frames: the wrong "
-                 "ones with the highest confidence first, then the right ones, least confident first. Each: the "
-                 "query frame, the map frame the matcher chose, and the true map frame nearest the query (a "
-                 "discarded reference frame when none of its true places is in the map).</p>"
-                 + _query_gallery(shown, thumbs.get(q_key, {}), thumbs[ref_key]))
+    where = _where_html(fails, sel, thumbs.get(q_key, {}), thumbs[ref_key])
     contrib = results["criterion_contribution"]
     settings = results.get("settings") or {}
     ref_shown = shown_path(str(settings.get("reference", reference)), base)

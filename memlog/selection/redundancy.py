@@ -86,64 +86,55 @@ def _pos_sqdist(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.fl
     return sq
 
 
-def find_duplicates(
-    table: ScoreTable, keep: ArrayLike, config: RedundancyConfig | None = None
-) -> Duplicates:
-    """Filter ``keep`` (bool[N]) so no kept frame near-duplicates an earlier kept frame."""
-    cfg = config if config is not None else RedundancyConfig()
-    mask = np.asarray(keep)
-    n = table.n
-    if mask.dtype != bool or mask.shape != (n,):
-        raise SelectionError(f"keep must be a bool mask of shape ({n},), got {mask.dtype} {mask.shape}")
-    use_d = cfg.dup_distance is not None
-    use_p = cfg.dup_radius_m is not None
-    if use_d and table.descriptors is None:
-        raise ConfigError("dup_distance needs descriptors, but the score table has none")
-    if use_p and table.positions is None:
-        raise ConfigError("dup_radius_m needs positions, but the score table has none")
-    dd = float(cfg.dup_distance) if cfg.dup_distance is not None else 0.0
-    rr = float(cfg.dup_radius_m) if cfg.dup_radius_m is not None else 0.0
+class _KeptFrames:
+    """The candidates' descriptors and positions and the growing set of kept frames they are
+    matched against (rows of the kept arrays in keeping order), for :func:`find_duplicates`."""
 
-    cand = np.flatnonzero(mask)
-    m = cand.size
-    out_keep = mask.copy()
-    dup_of = np.full(n, -1, dtype=np.int64)
-    dist_out = np.full(n, np.nan)
-    if m == 0:
-        return Duplicates(out_keep, dup_of, dist_out)
+    def __init__(self, table: ScoreTable, cand: NDArray[np.intp], cfg: RedundancyConfig) -> None:
+        m = cand.size
+        self.use_d = cfg.dup_distance is not None
+        self.use_p = cfg.dup_radius_m is not None
+        self.dd = float(cfg.dup_distance) if cfg.dup_distance is not None else 0.0
+        self.rr = float(cfg.dup_radius_m) if cfg.dup_radius_m is not None else 0.0
+        # (inactive conditions get empty columns: they are never read)
+        self.dsc = np.zeros((m, 0), dtype=np.float32)
+        self.d_ok = np.zeros(m, dtype=bool)
+        self.kept_d = np.zeros((m, 0), dtype=np.float32)
+        self.kept_dok = np.zeros(m, dtype=bool)
+        self.pos = np.zeros((m, 0), dtype=np.float64)
+        self.p_ok = np.zeros(m, dtype=bool)
+        self.kept_p = np.zeros((m, 0), dtype=np.float64)
+        self.kept_pok = np.zeros(m, dtype=bool)
+        if self.use_d:
+            assert table.descriptors is not None
+            dsc = table.descriptors[cand]
+            self.d_ok = np.all(np.isfinite(dsc), axis=1)
+            self.dsc = np.where(self.d_ok[:, None], dsc, 0.0).astype(np.float32)
+            self.kept_d = np.empty((m, self.dsc.shape[1]), dtype=np.float32)
+        if self.use_p:
+            assert table.positions is not None
+            self.pos = table.positions[cand]
+            self.p_ok = np.all(np.isfinite(self.pos), axis=1)
+            self.kept_p = np.empty((m, self.pos.shape[1]), dtype=np.float64)
+        self.kept_rows = np.empty(m, dtype=np.int64)  # table rows of kept frames
+        self.n_kept = 0
 
-    if use_d:
-        assert table.descriptors is not None
-        dsc = table.descriptors[cand]
-        d_ok = np.all(np.isfinite(dsc), axis=1)
-        dsc = np.where(d_ok[:, None], dsc, 0.0).astype(np.float32)
-        kept_d = np.empty((m, dsc.shape[1]), dtype=np.float32)
-        kept_dok = np.zeros(m, dtype=bool)
-    if use_p:
-        assert table.positions is not None
-        pos = table.positions[cand]
-        p_ok = np.all(np.isfinite(pos), axis=1)
-        kept_p = np.empty((m, pos.shape[1]), dtype=np.float64)
-        kept_pok = np.zeros(m, dtype=bool)
-    kept_rows = np.empty(m, dtype=np.int64)  # table rows of kept frames
-    n_kept = 0
-
-    def cost(rows: slice, ref: slice, kept: bool) -> NDArray[np.float32]:
+    def cost(self, rows: slice, ref: slice, kept: bool) -> NDArray[np.float32]:
         """Ranking cost of candidates ``rows`` against reference frames ``ref`` (rows of the
         kept arrays if ``kept``, else candidate rows): descriptor distance, else position
         distance (squared); +inf where a pair does not match every active condition."""
         out: NDArray[np.float32] | None = None
-        if use_d:
-            rd, rok = (kept_d[ref], kept_dok[ref]) if kept else (dsc[ref], d_ok[ref])
-            dist = np.float32(1.0) - dsc[rows] @ rd.T
-            bad = ~((dist < dd) & d_ok[rows][:, None] & rok[None, :])
+        if self.use_d:
+            rd, rok = (self.kept_d[ref], self.kept_dok[ref]) if kept else (self.dsc[ref], self.d_ok[ref])
+            dist = np.float32(1.0) - self.dsc[rows] @ rd.T
+            bad = ~((dist < self.dd) & self.d_ok[rows][:, None] & rok[None, :])
             dist[bad] = np.inf
             out = dist
-        if use_p:
-            rp, rok = (kept_p[ref], kept_pok[ref]) if kept else (pos[ref], p_ok[ref])
-            pd = _pos_sqdist(pos[rows], rp)
+        if self.use_p:
+            rp, rok = (self.kept_p[ref], self.kept_pok[ref]) if kept else (self.pos[ref], self.p_ok[ref])
+            pd = _pos_sqdist(self.pos[rows], rp)
             with np.errstate(invalid="ignore"):
-                bad = ~((pd <= rr * rr) & p_ok[rows][:, None] & rok[None, :])
+                bad = ~((pd <= self.rr * self.rr) & self.p_ok[rows][:, None] & rok[None, :])
             if out is None:
                 pd[bad] = np.inf
                 out = pd.astype(np.float32)
@@ -152,31 +143,78 @@ def find_duplicates(
         assert out is not None
         return out
 
+    def best_kept(self, blk: slice, chunk: int) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+        """Each candidate of ``blk``'s best match among the frames kept so far (row of the kept
+        arrays, -1: none) and its cost, ``chunk`` kept frames at a time."""
+        rows_b = np.arange(blk.stop - blk.start)
+        best_old = np.full(blk.stop - blk.start, -1, dtype=np.int64)
+        best_old_v = np.full(blk.stop - blk.start, np.inf, dtype=np.float32)
+        for k0 in range(0, self.n_kept, chunk):
+            k1 = min(self.n_kept, k0 + chunk)
+            c = self.cost(blk, slice(k0, k1), True)
+            arg = np.argmin(c, axis=1)
+            val = c[rows_b, arg]
+            better = val < best_old_v  # strict: ties stay with the earlier kept frame
+            best_old[better] = arg[better] + k0
+            best_old_v[better] = val[better]
+        return best_old, best_old_v
+
+    def keep(self, new: NDArray[np.int64], cand: NDArray[np.intp]) -> None:
+        """Add the candidates ``new`` (candidate rows, in order) to the kept frames."""
+        k_new = self.n_kept + new.size
+        self.kept_rows[self.n_kept:k_new] = cand[new]
+        if self.use_d:
+            self.kept_d[self.n_kept:k_new] = self.dsc[new]
+            self.kept_dok[self.n_kept:k_new] = self.d_ok[new]
+        if self.use_p:
+            self.kept_p[self.n_kept:k_new] = self.pos[new]
+            self.kept_pok[self.n_kept:k_new] = self.p_ok[new]
+        self.n_kept = k_new
+
+
+def _check_inputs(table: ScoreTable, mask: NDArray[Any], cfg: RedundancyConfig) -> None:
+    """Raise when ``mask`` is no bool mask of the table's rows or an active condition lacks its column."""
+    n = table.n
+    if mask.dtype != bool or mask.shape != (n,):
+        raise SelectionError(f"keep must be a bool mask of shape ({n},), got {mask.dtype} {mask.shape}")
+    if cfg.dup_distance is not None and table.descriptors is None:
+        raise ConfigError("dup_distance needs descriptors, but the score table has none")
+    if cfg.dup_radius_m is not None and table.positions is None:
+        raise ConfigError("dup_radius_m needs positions, but the score table has none")
+
+
+def find_duplicates(
+    table: ScoreTable, keep: ArrayLike, config: RedundancyConfig | None = None
+) -> Duplicates:
+    """Filter ``keep`` (bool[N]) so no kept frame near-duplicates an earlier kept frame."""
+    cfg = config if config is not None else RedundancyConfig()
+    mask = np.asarray(keep)
+    _check_inputs(table, mask, cfg)
+    n = table.n
+    cand = np.flatnonzero(mask)
+    m = cand.size
+    out_keep = mask.copy()
+    dup_of = np.full(n, -1, dtype=np.int64)
+    dist_out = np.full(n, np.nan)
+    if m == 0:
+        return Duplicates(out_keep, dup_of, dist_out)
+
+    kept = _KeptFrames(table, cand, cfg)
     b = int(min(256, max(16, math.isqrt(cfg.block_elements))))  # candidates per block
     chunk = max(1, cfg.block_elements // b)  # kept frames per distance block
     start = 0
     while start < m:
         stop = min(m, start + b)
         blk = slice(start, stop)
-        rows_b = np.arange(stop - start)
         # best match among the frames kept before this block, chunk by chunk
-        best_old = np.full(stop - start, -1, dtype=np.int64)
-        best_old_v = np.full(stop - start, np.inf, dtype=np.float32)
-        for k0 in range(0, n_kept, chunk):
-            k1 = min(n_kept, k0 + chunk)
-            c = cost(blk, slice(k0, k1), True)
-            arg = np.argmin(c, axis=1)
-            val = c[rows_b, arg]
-            better = val < best_old_v  # strict: ties stay with the earlier kept frame
-            best_old[better] = arg[better] + k0
-            best_old_v[better] = val[better]
+        best_old, best_old_v = kept.best_kept(blk, chunk)
         # within the block, sequentially (later frames may duplicate earlier block frames)
-        c_in = cost(blk, blk, False)  # column j set to inf once frame j is a duplicate
+        c_in = kept.cost(blk, blk, False)  # column j set to inf once frame j is a duplicate
         new_in_block: list[int] = []
         for j in range(stop - start):
             ci = int(cand[start + j])
             bv = float(best_old_v[j])
-            bref = int(kept_rows[best_old[j]]) if best_old[j] >= 0 else -1
+            bref = int(kept.kept_rows[best_old[j]]) if best_old[j] >= 0 else -1
             if j:
                 k = int(c_in[j, :j].argmin())
                 if c_in[j, k] < bv:
@@ -188,18 +226,9 @@ def find_duplicates(
                 c_in[j + 1 :, j] = np.inf
             else:
                 new_in_block.append(j)
-        new = np.asarray(new_in_block, dtype=np.int64) + start
-        k_new = n_kept + new.size
-        kept_rows[n_kept:k_new] = cand[new]
-        if use_d:
-            kept_d[n_kept:k_new] = dsc[new]
-            kept_dok[n_kept:k_new] = d_ok[new]
-        if use_p:
-            kept_p[n_kept:k_new] = pos[new]
-            kept_pok[n_kept:k_new] = p_ok[new]
-        n_kept = k_new
+        kept.keep(np.asarray(new_in_block, dtype=np.int64) + start, cand)
         start = stop
-    if not use_d:
+    if not kept.use_d:
         dist_out = np.sqrt(dist_out)
     return Duplicates(out_keep, dup_of, dist_out)
 

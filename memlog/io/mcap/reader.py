@@ -25,60 +25,50 @@ from __future__ import annotations
 
 import copy
 import heapq
-import io
 import os
 import struct
-import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import IO, Any
 
-from mcap.data_stream import ReadDataStream
 from mcap.records import Attachment as McapAttachment
-from mcap.records import Channel, ChunkIndex, Header, Message, Metadata, Schema, Statistics
+from mcap.records import Channel, Header, Message, Metadata, Schema
 from mcap.summary import Summary
 
 import numpy as np
 
 from memlog.errors import LogReadError
-from memlog.io._damage import MAX_CHUNK_BYTES, check_regular_file, damage_place, decompress
+from memlog.io._damage import MAX_CHUNK_BYTES, check_regular_file, damage_place
 from memlog.io._opened import counted_scan, file_key, learned, release
 from memlog.io.base import LogReader
 from memlog.io.camera import camera_kind
 from memlog.io.frame_table import FrameTable
+from memlog.io.mcap.records import (
+    CHUNK_HEAD,
+    KNOWN_OPS,
+    MAGIC,
+    OP_ATTACHMENT,
+    OP_CHANNEL,
+    OP_CHUNK,
+    OP_DATA_END,
+    OP_FOOTER,
+    OP_HEADER,
+    OP_MESSAGE,
+    OP_MESSAGE_INDEX,
+    OP_METADATA,
+    OP_SCHEMA,
+    ChunkRef,
+    RecordDamage,
+    chunk_records,
+    frame_table_of,
+    parse_record,
+    schema_info,
+)
+from memlog.io.mcap.summary import read_summary
 from memlog.io.records import Attachment, ChannelInfo, RawMessage, ReadReport, SchemaInfo
 from memlog.io.types import LogInfo
 
 __all__ = ["McapLog"]
-
-MAGIC = b"\x89MCAP0\r\n"
-_FOOTER_LEN = 1 + 8 + 8 + 8 + 4  # opcode, length, summary_start, summary_offset_start, summary_crc
-# opcodes
-_HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
-_MESSAGE_INDEX, _CHUNK_INDEX, _ATTACHMENT, _METADATA, _DATA_END = 0x07, 0x08, 0x09, 0x0C, 0x0F
-_STATISTICS = 0x0B
-_KNOWN = set(range(0x01, 0x10))
-_CHUNK_HEAD = 8 + 8 + 8 + 4 + 4  # start, end, uncompressed size, crc, compression length
-
-
-class _Damage(Exception):
-    """A record that cannot be what it claims (reported by the reader with its byte offset)."""
-
-    def __init__(self, pos: int, reason: str) -> None:
-        super().__init__(reason)
-        self.pos, self.reason = pos, reason
-
-
-@dataclass(frozen=True)
-class _ChunkRef:
-    """A chunk record found in the data (or an index entry to try), or a message record outside
-    chunks (``op`` 0x05): offset and log-time range."""
-
-    offset: int
-    start: int
-    end: int
-    index_length: int = 0  # the length the chunk index gives (used only if the record's own fails)
-    op: int = _CHUNK
 
 
 @dataclass
@@ -92,7 +82,7 @@ class _Learned:
     channels: dict[int, ChannelInfo] = field(default_factory=dict)
     data_channels: set[int] = field(default_factory=set)
     indexed: bool = False  # the summary's chunk index drives the reads
-    chunks: list[_ChunkRef] | None = None  # the scan's readable chunks and top-level messages
+    chunks: list[ChunkRef] | None = None  # the scan's readable chunks and top-level messages
     counts: dict[int, int] | None = None  # the scan's messages per channel
     ranges: dict[int, list[int]] = field(default_factory=dict)  # the scan's log-time range per channel
     tables: dict[str, FrameTable] = field(default_factory=dict)
@@ -101,68 +91,6 @@ class _Learned:
 
     def close(self) -> None:
         pass
-
-
-def _schema_info(s: Schema | None) -> SchemaInfo | None:
-    if s is None or s.id == 0:
-        return None
-    return SchemaInfo(s.name, s.encoding, bytes(s.data))
-
-
-def _parse(cls: Any, body: bytes, pos: int) -> Any:
-    try:
-        stream = ReadDataStream(io.BytesIO(body))
-        rec = cls.read(stream, len(body)) if cls is Message else cls.read(stream)
-    except Exception as exc:  # noqa: BLE001 - garbage bytes fail in many ways; all mean damage here
-        raise _Damage(pos, f"{cls.__name__} record does not parse ({type(exc).__name__}: {exc})") from None
-    if stream.count > len(body):
-        raise _Damage(pos, f"{cls.__name__} record is longer than its length field")
-    return rec
-
-
-def _chunk_records(body: bytes, pos: int, validate_crc: bool) -> tuple[list[tuple[int, Any]], bool]:
-    """Schema, Channel and Message records of the chunk record ``body`` (at byte ``pos``), each
-    with its offset in the chunk's uncompressed records, and whether the CRC was checked. Raises
-    :class:`_Damage`."""
-    if len(body) < _CHUNK_HEAD + 8:
-        raise _Damage(pos, "chunk record is too short")
-    start, end, size, crc, clen = struct.unpack_from("<QQQII", body, 0)
-    at = _CHUNK_HEAD
-    try:
-        compression = body[at : at + clen].decode()
-    except UnicodeDecodeError:
-        raise _Damage(pos, "chunk compression name is not text") from None
-    at += clen
-    if at + 8 > len(body):
-        raise _Damage(pos, "chunk record is too short")
-    (dlen,) = struct.unpack_from("<Q", body, at)
-    at += 8
-    if at + dlen > len(body):
-        raise _Damage(pos, f"chunk data length {dlen} is longer than the record")
-    try:
-        data = decompress(compression, body[at : at + dlen], size)
-    except Exception as exc:  # noqa: BLE001 - zstd/lz4 errors have no common base
-        raise _Damage(pos, f"chunk does not decompress ({type(exc).__name__}: {exc})") from None
-    checked = validate_crc and crc != 0
-    if checked and zlib.crc32(data) != crc:
-        raise _Damage(pos, f"chunk fails its CRC check (expected {crc:#010x}, got {zlib.crc32(data):#010x})")
-    out: list[tuple[int, Any]] = []
-    at = 0
-    while at < len(data):
-        if at + 9 > len(data):
-            raise _Damage(pos, "chunk ends inside a record header")
-        op, n = data[at], struct.unpack_from("<Q", data, at + 1)[0]
-        if at + 9 + n > len(data):
-            raise _Damage(pos, "a record in the chunk is longer than the chunk")
-        body_i = data[at + 9 : at + 9 + n]
-        if op == _MESSAGE:
-            out.append((at, _parse(Message, body_i, pos)))
-        elif op == _CHANNEL:
-            out.append((at, _parse(Channel, body_i, pos)))
-        elif op == _SCHEMA:
-            out.append((at, _parse(Schema, body_i, pos)))
-        at += 9 + n
-    return out, checked
 
 
 class McapLog(LogReader):
@@ -210,73 +138,27 @@ class McapLog(LogReader):
     def _read_header(self) -> Header | None:
         try:
             op, n = self._head(len(MAGIC))
-            if op != _HEADER or n > self._size:
+            if op != OP_HEADER or n > self._size:
                 return None
             self._fh.seek(len(MAGIC) + 9)
-            return _parse(Header, self._fh.read(n), len(MAGIC))  # type: ignore[no-any-return]
-        except _Damage:
+            return parse_record(Header, self._fh.read(n), len(MAGIC))  # type: ignore[no-any-return]
+        except RecordDamage:
             return None
 
     def _head(self, pos: int) -> tuple[int, int]:
         self._fh.seek(pos)
         b = self._fh.read(9)
         if len(b) < 9:
-            raise _Damage(pos, "the file ends in the middle of a record")
+            raise RecordDamage(pos, "the file ends in the middle of a record")
         return b[0], struct.unpack_from("<Q", b, 1)[0]
-
-    def _read_summary(self) -> tuple[Summary | None, int, str]:
-        """(summary, summary_start, why it is not used)."""
-        size = self._size
-        if size < len(MAGIC) * 2 + _FOOTER_LEN:
-            return None, 0, "the file is too short to hold a footer"
-        self._fh.seek(size - len(MAGIC) - _FOOTER_LEN)
-        tail = self._fh.read(_FOOTER_LEN + len(MAGIC))
-        if tail[-len(MAGIC):] != MAGIC or tail[0] != _FOOTER:
-            return None, 0, "no footer at the end (truncated or unfinished recording)"
-        start, offset_start, crc = struct.unpack_from("<QQI", tail, 9)
-        if start == 0:
-            return None, 0, "no summary section (unindexed MCAP)"
-        footer_pos = size - len(MAGIC) - _FOOTER_LEN
-        if not len(MAGIC) < start <= footer_pos:
-            return None, 0, f"the footer points to a summary at byte {start}, outside the file"
-        self._fh.seek(start)
-        blob = self._fh.read(footer_pos - start)
-        if crc != 0:
-            got = zlib.crc32(tail[: _FOOTER_LEN - 4], zlib.crc32(blob))
-            if got != crc:
-                return None, start, f"the summary section fails its CRC check (expected {crc:#010x}, got {got:#010x})"
-        summary = Summary()
-        at = 0
-        try:
-            while at < len(blob):
-                if at + 9 > len(blob):
-                    raise _Damage(start + at, "summary ends inside a record header")
-                op, n = blob[at], struct.unpack_from("<Q", blob, at + 1)[0]
-                if op not in _KNOWN and op < 0x80 or at + 9 + n > len(blob):
-                    raise _Damage(start + at, f"summary record (opcode {op:#04x}, length {n}) is not valid")
-                body = blob[at + 9 : at + 9 + n]
-                if op == _SCHEMA:
-                    s = _parse(Schema, body, start + at)
-                    summary.schemas[s.id] = s
-                elif op == _CHANNEL:
-                    c = _parse(Channel, body, start + at)
-                    summary.channels[c.id] = c
-                elif op == _CHUNK_INDEX:
-                    summary.chunk_indexes.append(_parse(ChunkIndex, body, start + at))
-                elif op == _STATISTICS:
-                    summary.statistics = _parse(Statistics, body, start + at)
-                at += 9 + n
-        except _Damage as exc:
-            return None, start, f"the summary section does not parse ({exc.reason})"
-        return summary, start, ""
 
     def _open_summary(self) -> None:
         learned_ = self._l
-        summary, summary_start, why = self._read_summary()
+        summary, summary_start, why = read_summary(self._fh, self._size)
         if summary is not None and summary.channels:
             learned_.summary = summary
             for sid, s in summary.schemas.items():
-                learned_.schemas[sid] = _schema_info(s)
+                learned_.schemas[sid] = schema_info(s)
             for c in summary.channels.values():
                 self._add_channel(c)
         if summary is None or not summary.channels:
@@ -317,50 +199,50 @@ class McapLog(LogReader):
             reasons.append(f"{top} message(s) lie outside chunks")
         self.warn(f"{self.path}: the chunk index and the data section disagree ({'; '.join(reasons)}): reading the data instead")
         # past damage the index may still lead to intact chunks: the scan tries them
-        self._scan([_ChunkRef(off, index[off].message_start_time, index[off].message_end_time,
+        self._scan([ChunkRef(off, index[off].message_start_time, index[off].message_end_time,
                               index[off].chunk_length) for off in bogus], damage_known=damage is not None)
 
-    def _walk_chunks(self, end: int) -> tuple[dict[int, _ChunkRef], _Damage | None, int]:
+    def _walk_chunks(self, end: int) -> tuple[dict[int, ChunkRef], RecordDamage | None, int]:
         """Chunk records of the data section by their headers alone (bodies are skipped), up to
         the DataEnd record or byte ``end``; the damage that stopped the walk, if any, and how many
         messages lie outside chunks."""
-        found: dict[int, _ChunkRef] = {}
+        found: dict[int, ChunkRef] = {}
         top = 0
         pos = len(MAGIC)
         try:
             while pos < end:
                 op, n = self._head(pos)
-                if op not in _KNOWN and op < 0x80:
-                    raise _Damage(pos, f"no valid record at byte {pos} (opcode {op:#04x})")
+                if op not in KNOWN_OPS and op < 0x80:
+                    raise RecordDamage(pos, f"no valid record at byte {pos} (opcode {op:#04x})")
                 if pos + 9 + n > end:
-                    raise _Damage(pos, f"record at byte {pos} claims {n} bytes, past the data section")
-                if op == _CHUNK:
-                    head = self._fh.read(min(n, _CHUNK_HEAD))
-                    if len(head) < _CHUNK_HEAD:
-                        raise _Damage(pos, "chunk record is too short")
+                    raise RecordDamage(pos, f"record at byte {pos} claims {n} bytes, past the data section")
+                if op == OP_CHUNK:
+                    head = self._fh.read(min(n, CHUNK_HEAD))
+                    if len(head) < CHUNK_HEAD:
+                        raise RecordDamage(pos, "chunk record is too short")
                     s, e = struct.unpack_from("<QQ", head, 0)
-                    found[pos] = _ChunkRef(pos, s, e, 9 + n)
-                elif op == _MESSAGE:
+                    found[pos] = ChunkRef(pos, s, e, 9 + n)
+                elif op == OP_MESSAGE:
                     top += 1
-                elif op == _DATA_END or op == _FOOTER:
+                elif op == OP_DATA_END or op == OP_FOOTER:
                     break
                 pos += 9 + n
-        except _Damage as exc:
+        except RecordDamage as exc:
             return found, exc, top
         return found, None, top
 
-    def _scan(self, past_damage: list[_ChunkRef] | None = None, *, damage_known: bool = False) -> None:
+    def _scan(self, past_damage: list[ChunkRef] | None = None, *, damage_known: bool = False) -> None:
         """Read the data section once, up to the damage, and learn what the reads need: where
         every readable chunk and top-level message lies, the channels, the message counts and
         time ranges, and the frame tables. ``past_damage``: chunks the index knows that the walk
         did not reach, tried after it."""
         counted_scan(os.path.realpath(self.path))
         lrn = self._l
-        refs: list[_ChunkRef] = []
+        refs: list[ChunkRef] = []
         counts: dict[int, int] = {}
         entries: dict[str, list[tuple[int, int, int]]] = {}
 
-        def note(ref: _ChunkRef, msgs: list[tuple[int, Message]]) -> None:
+        def note(ref: ChunkRef, msgs: list[tuple[int, Message]]) -> None:
             refs.append(ref)
             for inner, m in msgs:
                 counts[m.channel_id] = counts.get(m.channel_id, 0) + 1
@@ -370,27 +252,27 @@ class McapLog(LogReader):
                 if ch is not None and camera_kind(ch.msgtype):
                     entries.setdefault(ch.topic, []).append((m.log_time, ref.offset, inner))
 
-        walk = self._walk_records({_SCHEMA, _CHANNEL, _MESSAGE, _CHUNK})
+        walk = self._walk_records({OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK})
         for pos, op, body in walk:
             try:
-                if op == _SCHEMA:
-                    self._absorb([(0, _parse(Schema, body, pos))])
-                elif op == _CHANNEL:
-                    self._absorb([(0, _parse(Channel, body, pos))])
-                elif op == _MESSAGE:
-                    m = _parse(Message, body, pos)
-                    note(_ChunkRef(pos, m.log_time, m.log_time, 9 + len(body), _MESSAGE), [(0, m)])
+                if op == OP_SCHEMA:
+                    self._absorb([(0, parse_record(Schema, body, pos))])
+                elif op == OP_CHANNEL:
+                    self._absorb([(0, parse_record(Channel, body, pos))])
+                elif op == OP_MESSAGE:
+                    m = parse_record(Message, body, pos)
+                    note(ChunkRef(pos, m.log_time, m.log_time, 9 + len(body), OP_MESSAGE), [(0, m)])
                 else:
-                    recs, checked = _chunk_records(body, pos, self.validate_crcs)
+                    recs, checked = chunk_records(body, pos, self.validate_crcs)
                     lrn.crcs.append(checked)
                     msgs = self._absorb(recs)
                     start, end = struct.unpack_from("<QQ", body, 0)
-                    note(_ChunkRef(pos, start, end, 9 + len(body)), msgs)
-            except _Damage as exc:
+                    note(ChunkRef(pos, start, end, 9 + len(body)), msgs)
+            except RecordDamage as exc:
                 self.report.count("skipped_chunks", pos)
-                self.warn(f"{self.path}: {'chunk' if op == _CHUNK else 'record'} at byte {pos} is damaged: "
+                self.warn(f"{self.path}: {'chunk' if op == OP_CHUNK else 'record'} at byte {pos} is damaged: "
                           f"{exc.reason}; skipped")
-        damage: _Damage | None = self._walk_damage
+        damage: RecordDamage | None = self._walk_damage
         later = [r for r in past_damage or [] if damage is None or r.offset > damage.pos]
         found_later = 0
         for ref in later:
@@ -416,7 +298,7 @@ class McapLog(LogReader):
         for ch in lrn.channels.values():  # camera topics without a readable message have empty tables
             if camera_kind(ch.msgtype):
                 entries.setdefault(ch.topic, [])
-        lrn.tables = {t: _table(e) for t, e in entries.items()}
+        lrn.tables = {t: frame_table_of(e) for t, e in entries.items()}
 
     def close(self) -> None:
         self._fh.close()
@@ -482,8 +364,8 @@ class McapLog(LogReader):
                     continue
                 try:
                     op, n = self._head(off)
-                    body = self._fh.read(n) if op == _MESSAGE_INDEX and 6 <= n <= self._size else b""
-                except _Damage:
+                    body = self._fh.read(n) if op == OP_MESSAGE_INDEX and 6 <= n <= self._size else b""
+                except RecordDamage:
                     return f"unreadable at byte {off}"
                 got_cid, rlen = struct.unpack_from("<HI", body, 0) if len(body) >= 6 else (-1, 0)
                 if got_cid != cid or rlen % 16 or 6 + rlen > len(body):
@@ -534,7 +416,7 @@ class McapLog(LogReader):
         if lrn.indexed:
             assert lrn.summary is not None
             refs = [
-                _ChunkRef(ci.chunk_start_offset, ci.message_start_time, ci.message_end_time, ci.chunk_length)
+                ChunkRef(ci.chunk_start_offset, ci.message_start_time, ci.message_end_time, ci.chunk_length)
                 for ci in lrn.summary.chunk_indexes
                 if ids is None or not ci.message_index_offsets or ids & set(ci.message_index_offsets)
             ]
@@ -542,35 +424,35 @@ class McapLog(LogReader):
             refs = list(lrn.chunks or [])
         yield from self._chunked_messages(refs, ids, start_ns, end_ns, log_time_order)
 
-    def _read_chunk(self, ref: _ChunkRef) -> list[tuple[int, Message]] | None:
+    def _read_chunk(self, ref: ChunkRef) -> list[tuple[int, Message]] | None:
         """Messages of the chunk (or message record) at ``ref.offset``, each with its offset in the
         chunk (schemas and channels registered); None when it is damaged (reported, once)."""
         pos = ref.offset
         try:
             op, n = self._head(pos)
             if op != ref.op:
-                raise _Damage(pos, f"no {'chunk' if ref.op == _CHUNK else 'message'} record at byte {pos} "
+                raise RecordDamage(pos, f"no {'chunk' if ref.op == OP_CHUNK else 'message'} record at byte {pos} "
                                    f"(opcode {op:#04x})")
-            if op == _MESSAGE:
+            if op == OP_MESSAGE:
                 self._fh.seek(pos + 9)
-                return [(0, _parse(Message, self._fh.read(n), pos))]
+                return [(0, parse_record(Message, self._fh.read(n), pos))]
             lengths = [n] + ([ref.index_length - 9] if ref.index_length and ref.index_length - 9 != n else [])
-            err: _Damage | None = None
+            err: RecordDamage | None = None
             for length in lengths:  # the record's own length first; the index's if that fails
                 if length < 0 or pos + 9 + length > self._size or length > MAX_CHUNK_BYTES:
-                    err = _Damage(pos, f"chunk at byte {pos} claims {length} bytes, past the end of the file")
+                    err = RecordDamage(pos, f"chunk at byte {pos} claims {length} bytes, past the end of the file")
                     continue
                 self._fh.seek(pos + 9)
                 try:
-                    records, checked = _chunk_records(self._fh.read(length), pos, self.validate_crcs)
-                except _Damage as exc:
+                    records, checked = chunk_records(self._fh.read(length), pos, self.validate_crcs)
+                except RecordDamage as exc:
                     err = exc
                     continue
                 self._chunks_crc.append(checked)
                 return self._absorb(records)
             assert err is not None
             raise err
-        except _Damage as exc:
+        except RecordDamage as exc:
             self.report.count("skipped_chunks", pos)
             self.warn(f"{self.path}: chunk at byte {pos} is damaged: {exc.reason}; "
                       f"skipped its messages (log time {ref.start}..{ref.end})")
@@ -583,7 +465,7 @@ class McapLog(LogReader):
         out = []
         for at, r in records:
             if isinstance(r, Schema):
-                lrn.schemas.setdefault(r.id, _schema_info(r))
+                lrn.schemas.setdefault(r.id, schema_info(r))
             elif isinstance(r, Channel):
                 if r.id not in lrn.data_channels:
                     lrn.data_channels.add(r.id)
@@ -610,7 +492,7 @@ class McapLog(LogReader):
         return RawMessage(ch, m.log_time, m.publish_time, m.sequence, bytes(m.data), where)
 
     def _chunked_messages(
-        self, refs: list[_ChunkRef], ids: set[int] | None, start_ns: int | None, end_ns: int | None,
+        self, refs: list[ChunkRef], ids: set[int] | None, start_ns: int | None, end_ns: int | None,
         log_time_order: bool,
     ) -> Iterator[RawMessage]:
         chunks = [r for r in refs if (start_ns is None or r.end >= start_ns) and (end_ns is None or r.start < end_ns)]
@@ -654,27 +536,27 @@ class McapLog(LogReader):
         """(offset, opcode, body) of the top-level records of the data section whose opcode is in
         ``kinds`` (other bodies are skipped by seeking), up to DataEnd/Footer; damage ends it and
         is left in ``self._walk_damage`` (None when the walk reached the end cleanly)."""
-        self._walk_damage: _Damage | None = None
+        self._walk_damage: RecordDamage | None = None
         pos = len(MAGIC)
         size = self._size
         try:
             while True:
                 if pos == size:
-                    raise _Damage(pos, "the file ends before its DataEnd record and footer")
+                    raise RecordDamage(pos, "the file ends before its DataEnd record and footer")
                 op, n = self._head(pos)
-                if op not in _KNOWN and op < 0x80:
-                    raise _Damage(pos, f"no valid record (opcode {op:#04x})")
+                if op not in KNOWN_OPS and op < 0x80:
+                    raise RecordDamage(pos, f"no valid record (opcode {op:#04x})")
                 if pos + 9 + n > size:
-                    raise _Damage(pos, f"a record claims {n} bytes, past the end of the file")
-                if op == _DATA_END or op == _FOOTER:
+                    raise RecordDamage(pos, f"a record claims {n} bytes, past the end of the file")
+                if op == OP_DATA_END or op == OP_FOOTER:
                     return
                 if op in kinds:
                     if n > MAX_CHUNK_BYTES:
-                        raise _Damage(pos, f"a record claims {n} bytes")
+                        raise RecordDamage(pos, f"a record claims {n} bytes")
                     self._fh.seek(pos + 9)
                     yield pos, op, self._fh.read(n)
                 pos += 9 + n
-        except _Damage as exc:
+        except RecordDamage as exc:
             self._walk_damage = exc
 
     def _records(self, kinds: set[int]) -> Iterator[tuple[int, int, bytes]]:
@@ -690,26 +572,21 @@ class McapLog(LogReader):
 
     # -- metadata / attachments ----------------------------------------------------
     def metadata(self) -> Iterator[tuple[str, dict[str, str]]]:
-        for pos, _op, body in self._records({_METADATA}):
+        for pos, _op, body in self._records({OP_METADATA}):
             try:
-                m = _parse(Metadata, body, pos)
-            except _Damage as exc:
+                m = parse_record(Metadata, body, pos)
+            except RecordDamage as exc:
                 if self.report.count("bad_messages", ("metadata", pos)):
                     self.warn(f"{self.path}: metadata record at byte {pos} is damaged ({exc.reason}); skipped")
                 continue
             yield m.name, dict(m.metadata)
 
     def attachments(self) -> Iterator[Attachment]:
-        for pos, _op, body in self._records({_ATTACHMENT}):
+        for pos, _op, body in self._records({OP_ATTACHMENT}):
             try:
-                a = _parse(McapAttachment, body, pos)
-            except _Damage as exc:
+                a = parse_record(McapAttachment, body, pos)
+            except RecordDamage as exc:
                 if self.report.count("bad_messages", ("attachment", pos)):
                     self.warn(f"{self.path}: attachment record at byte {pos} is damaged ({exc.reason}); skipped")
                 continue
             yield Attachment(a.name, a.media_type, a.log_time, a.create_time, bytes(a.data))
-
-
-def _table(entries: list[tuple[int, int, int]]) -> FrameTable:
-    a = np.asarray(entries, dtype=np.int64).reshape(-1, 3)
-    return FrameTable(a[:, 0], a[:, 1], a[:, 2])
