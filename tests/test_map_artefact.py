@@ -18,7 +18,7 @@ import pytest
 from mcap.reader import make_reader
 
 import memlog.outputs.map_artefact as artefact
-import memlog.steps.map as map_step
+import memlog.steps.map_log as map_step  # (the map step's writing half builds the table)
 from memlog.cli.app import main
 from memlog.errors import DescriptorError
 from memlog.outputs.descriptor_table import read_descriptors
