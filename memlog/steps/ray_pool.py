@@ -246,7 +246,7 @@ class _Worker:
         context = _ray().get_runtime_context()
         return {"pid": os.getpid(), "host": platform.node(), "node": context.get_node_id(),
                 "memlog": __version__, "providers": choose_providers(device),
-                "gpus": [str(g) for g in context.get_accelerator_ids().get("GPU", [])]}
+                "gpus": ",".join(str(g) for g in context.get_accelerator_ids().get("GPU", [])) or None}
 
     def run(self, fn: Callable[..., Any], job: Job) -> tuple[int, Any, list[logging.LogRecord]]:
         result, records = run_job(fn, job)
