@@ -282,6 +282,10 @@ BENCHES: list[Bench] = [
           ("python", "benchmarks/record_codecs.py", "3000"),
           "score record size and encode/decode cost per encoding family",
           1),
+    Bench("video_decode",
+          ("python", "benchmarks/video_decode.py"),
+          "what a video camera topic costs to read: H.264 against JPEG at 960x540, per frame read",
+          2, ("shared",)),
     Bench("damage_sweep",
           ("python", "benchmarks/damage_sweep.py"),
           "hundreds of damaged or wrong copies of the fixtures and shared logs through the readers, `inspect` and "
@@ -314,6 +318,7 @@ TITLES = {
     "ms_probe": "a memorability probe on DINOv2",
     "resmem_flops": "ResMem's FLOPs and GPU throughput",
     "record_codecs": "score record codecs",
+    "video_decode": "video camera topics: decoding H.264 against JPEG",
     "damage_sweep": "the damage sweep",
 }
 

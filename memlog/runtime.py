@@ -207,7 +207,8 @@ class Runtime:
     ``"c"`` or ``"numpy"`` (:func:`memlog.scoring.entropy.entropy_kernel`); ``model_cache_size``:
     models kept per process; ``cache_dir``: the model cache directory (None: ``~/.cache/memlog``);
     ``debug``: internal errors print their traceback; ``ray_address``: the Ray cluster to join
-    when none is named (None: a new local instance). ``opened`` and ``models`` are the caches; a
+    when none is named (None: a new local instance). ``opened`` and ``models`` are the caches (and
+``indexes``: what reading a log's data taught, such as a video topic's keyframes); a
     Runtime made by :meth:`replace` shares them (and its ``model_cache_size`` bounds the shared model
     cache from then on), one that is unpickled has empty ones."""
 
@@ -219,6 +220,7 @@ class Runtime:
     ray_address: str | None = None
     opened: OpenedLogs = field(default_factory=OpenedLogs, compare=False, repr=False)
     models: ModelCache = field(default_factory=ModelCache, compare=False, repr=False)
+    indexes: ModelCache = field(default_factory=lambda: ModelCache(64), compare=False, repr=False)
 
     def __post_init__(self) -> None:
         mp = self.max_pixels

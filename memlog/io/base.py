@@ -6,17 +6,22 @@ import logging
 import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Container, Iterable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import TracebackType
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
+
 from memlog.errors import ConfigError, ImageDecodeError, TopicError
-from memlog.io.camera import camera_kind, extract_image
+from memlog.io.camera import CAMERA_TYPES, camera_kind, extract_image
 from memlog.io.decoders import UnsupportedEncoding, make_deserializer
 from memlog.io.frame import Frame
 from memlog.io.frame_table import FrameTable
 from memlog.io.records import Attachment, ChannelInfo, RawMessage, ReadReport
-from memlog.io.types import LogInfo, TopicInfo
+from memlog.io.types import ImagePayload, LogInfo, TopicInfo
+from memlog.io.video import VIDEO_CODECS, VideoDecoder, codec_of, is_keyframe, keyframe_before
+from memlog.runtime import current
 
 __all__ = ["LogReader", "FrameError", "StreamItem", "FrameWindow"]
 
@@ -270,6 +275,10 @@ class LogReader(ABC):
         this log) or, when None, every camera topic. :class:`TopicError` names what is wrong."""
         cams = self.camera_topics()
         if topics is None:
+            if not cams:
+                seen = ", ".join(f"{c.topic} ({c.msgtype})" for c in sorted(self.channels(), key=lambda c: c.topic))
+                raise TopicError(f"{self.path}: no camera topic memlog can read (topics: {seen or 'none'}); memlog "
+                                 f"reads {', '.join(CAMERA_TYPES)}")
             return cams
         wanted = sorted(set(topics))
         not_cam = set(wanted) - set(cams)
@@ -322,11 +331,20 @@ class LogReader(ABC):
         if not cams and not extra:
             return
         tables = {t: self.frame_table(t) for t in cams}
+        # a video topic is decoded from the keyframe at or before the first frame wanted
+        video_from = {t: self._video_start(t, tables[t], start_ns, end_ns, stride, indices)
+                      for t in cams if self._is_video(t)}
+        read_from = start_ns
+        if start_ns is not None and video_from:
+            read_from = min([start_ns] + [int(tables[t].times[i]) for t, i in video_from.items() if i is not None])
         decoders: dict[int, Any] = {}
-        for m in self.messages(cams | extra, start_ns, end_ns, True):
+        videos: dict[str, VideoDecoder] = {}
+        for m in self.messages(cams | extra, read_from, end_ns, True):
             topic = m.channel.topic
+            early = start_ns is not None and m.log_time < start_ns  # read only for a video's keyframe
             if topic not in cams:
-                yield StreamItem(m)
+                if not early:
+                    yield StreamItem(m)
                 continue
             idx = tables[topic].index_of(m.where)
             if idx < 0:
@@ -335,9 +353,98 @@ class LogReader(ABC):
                     self.warn(f"{self.path}: topic {topic}: a message at log time {m.log_time} is not in the log's "
                               "index, so it has no frame index (the index is damaged); skipped")
                 continue
-            if idx % stride or (indices is not None and idx not in indices.get(topic, ())):
+            wanted = not early and not idx % stride and (indices is None or idx in indices.get(topic, ()))
+            if topic in video_from:
+                first = video_from[topic]
+                if first is None or idx < first:
+                    continue
+                frame = self._video_frame(m, idx, wanted, decoders, videos, errors)
+                if wanted:
+                    yield StreamItem(m, idx, frame)
                 continue
-            yield StreamItem(m, idx, self.to_frame(m, idx, decoders, errors))
+            if wanted:
+                yield StreamItem(m, idx, self.to_frame(m, idx, decoders, errors))
+
+    def _is_video(self, topic: str) -> bool:
+        return any(c.topic == topic and camera_kind(c.msgtype) == "video" for c in self.channels())
+
+    def _video_start(self, topic: str, table: FrameTable, start_ns: int | None, end_ns: int | None, stride: int,
+                     indices: Mapping[str, Container[int]] | None) -> int | None:
+        """The frame index video ``topic`` is decoded from: the keyframe at or before the first
+        frame :meth:`stream` yields (None: it yields none)."""
+        first, last = table.window(start_ns, end_ns)
+        if indices is not None:
+            mine = indices.get(topic, ())
+            wanted = [i for i in (mine if isinstance(mine, Iterable) else range(first, last))
+                      if first <= i < last and not i % stride and i in mine]
+            if not wanted:
+                return None
+            lo = min(wanted)
+        else:
+            lo = first + (-first) % stride
+            if lo >= last:
+                return None
+        return 0 if lo == 0 else keyframe_before(self.video_keyframes(topic), lo)
+
+    def video_keyframes(self, topic: str) -> npt.NDArray[np.int64]:
+        """The frame indices of video ``topic``'s keyframes (found in the packets once per log and
+        process, kept in the runtime context: :mod:`memlog.io.video`)."""
+        from memlog.io._opened import file_key
+
+        def scan() -> npt.NDArray[np.int64]:
+            table = self.frame_table(topic)
+            found: list[int] = []
+            decoders: dict[int, Any] = {}
+            for m in self.messages({topic}, None, None, True):
+                idx = table.index_of(m.where)
+                if idx < 0:
+                    continue
+                try:
+                    _stamp, _fid, payload = extract_image(m.channel.msgtype, self._deserializer(m, decoders)(m.data))
+                except Exception:  # a packet that does not deserialize is reported where it is streamed
+                    continue
+                codec = codec_of(payload.encoding)
+                if codec is not None and is_keyframe(codec, payload.data, None if payload.keyframe is None
+                                                     else int(payload.keyframe)):
+                    found.append(idx)
+            return np.asarray(sorted(found), dtype=np.int64)
+
+        key = ("video-keyframes", file_key("video", self.path), topic)
+        return current().indexes.get(key, scan)
+
+    def _video_frame(self, m: RawMessage, idx: int, wanted: bool, decoders: dict[int, Any],
+                     videos: dict[str, VideoDecoder], errors: list[FrameError] | None) -> Frame | None:
+        """Feed video message ``m`` to its topic's decoder; the frame with its decoded pixels when
+        ``wanted`` (None, reported, when it cannot be shown)."""
+        topic = m.channel.topic
+        frame = self.to_frame(m, idx, decoders, errors if wanted else None, report=wanted)
+        dec = videos.get(topic)
+        if frame is None:
+            if dec is not None:
+                dec.synced = False  # a lost packet: the frames after it wait for a keyframe
+            return None
+        codec = codec_of(frame.payload.encoding)
+        if codec is None:
+            if wanted:
+                self._frame_error(m, idx, f"video format {frame.payload.encoding!r} is not one memlog decodes "
+                                          f"({', '.join(VIDEO_CODECS)})", errors)
+            return None
+        if dec is None or dec.codec != codec:
+            dec = videos[topic] = VideoDecoder(codec, topic)
+        key = is_keyframe(codec, frame.payload.data, None if frame.payload.keyframe is None
+                          else int(frame.payload.keyframe))
+        try:
+            bgr = dec.decode(frame.payload.data, key, wanted)
+        except ImageDecodeError as exc:
+            if wanted:
+                err = self.decode_error(frame, exc)
+                if errors is not None:
+                    errors.append(err)
+            return None
+        if bgr is None:
+            return None
+        h, w = bgr.shape[:2]
+        return replace(frame, payload=ImagePayload("raw", "bgr8", bgr.tobytes(), width=w, height=h, step=3 * w))
 
     def frames(
         self,
@@ -357,27 +464,23 @@ class LogReader(ABC):
                 yield item.frame
 
     def to_frame(
-        self, m: RawMessage, idx: int, decoders: dict[int, Any], errors: list[FrameError] | None
+        self, m: RawMessage, idx: int, decoders: dict[int, Any], errors: list[FrameError] | None, *,
+        report: bool = True,
     ) -> Frame | None:
         """Deserialize camera message ``m`` (the ``idx``-th of its topic) into a Frame; None if it fails
-        (reported). ``decoders`` caches one deserializer per channel across calls."""
+        (reported, unless ``report`` is false). ``decoders`` caches one deserializer per channel."""
         ch = m.channel
         try:
-            dec = decoders.get(ch.id)
-            if dec is None:
-                try:
-                    dec = decoders[ch.id] = make_deserializer(ch)
-                except UnsupportedEncoding as exc:
-                    dec = decoders[ch.id] = exc  # parse the schema once; report every message
-            if isinstance(dec, UnsupportedEncoding):
-                raise dec
-            msg = dec(m.data)
+            msg = self._deserializer(m, decoders)(m.data)
             stamp, frame_id, payload = extract_image(ch.msgtype, msg)
         except UnsupportedEncoding as exc:
-            self._frame_error(m, idx, str(exc), errors)
+            if report:
+                self._frame_error(m, idx, str(exc), errors)
             return None
         except Exception as exc:  # a corrupt message must not stop the run
-            self._frame_error(m, idx, f"message does not deserialize as {ch.msgtype}: {type(exc).__name__}: {exc}", errors)
+            if report:
+                self._frame_error(m, idx, f"message does not deserialize as {ch.msgtype}: {type(exc).__name__}: "
+                                          f"{exc}", errors)
             return None
         return Frame(
             topic=ch.topic,
@@ -388,6 +491,19 @@ class LogReader(ABC):
             payload=payload,
             msgtype=ch.msgtype,
         )
+
+    @staticmethod
+    def _deserializer(m: RawMessage, decoders: dict[int, Any]) -> Any:
+        """The deserializer of ``m``'s channel (made once; :class:`UnsupportedEncoding` when there is none)."""
+        dec = decoders.get(m.channel.id)
+        if dec is None:
+            try:
+                dec = decoders[m.channel.id] = make_deserializer(m.channel)
+            except UnsupportedEncoding as exc:
+                dec = decoders[m.channel.id] = exc  # parse the schema once; report every message
+        if isinstance(dec, UnsupportedEncoding):
+            raise dec
+        return dec
 
     def absorb(self, report: ReadReport, errors: Iterable[FrameError] = ()) -> None:
         """The damage a worker found reading this same log (its ``report`` and frame ``errors``):

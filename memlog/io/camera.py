@@ -12,7 +12,7 @@ from typing import Any
 
 from memlog.io.types import ImagePayload
 
-__all__ = ["camera_kind", "extract_image", "header_stamp", "normalize_msgtype"]
+__all__ = ["CAMERA_TYPES", "camera_kind", "extract_image", "header_stamp", "normalize_msgtype"]
 
 _COMPRESSED = {
     "sensor_msgs/CompressedImage",
@@ -24,6 +24,14 @@ _RAW = {
     "foxglove.RawImage",
     "foxglove_msgs/RawImage",
 }
+_VIDEO = {
+    "foxglove.CompressedVideo",
+    "foxglove_msgs/CompressedVideo",
+    "ffmpeg_image_transport_msgs/FFMPEGPacket",
+}
+
+#: Every camera message type memlog reads (ROS 2 spells ``pkg/msg/Type``), for messages.
+CAMERA_TYPES = tuple(sorted(_COMPRESSED | _RAW | _VIDEO))
 
 
 def normalize_msgtype(name: str) -> str:
@@ -35,12 +43,15 @@ def normalize_msgtype(name: str) -> str:
 
 
 def camera_kind(msgtype: str) -> str | None:
-    """``"compressed"``, ``"raw"`` or None for a message type name."""
+    """``"compressed"``, ``"raw"``, ``"video"`` (one packet of a video stream per message) or None
+    for a message type name."""
     norm = normalize_msgtype(msgtype)
     if norm in _COMPRESSED:
         return "compressed"
     if norm in _RAW:
         return "raw"
+    if norm in _VIDEO:
+        return "video"
     return None
 
 
@@ -88,6 +99,12 @@ def extract_image(msgtype: str, msg: Any) -> tuple[int | None, str, ImagePayload
     data = _as_bytes(_get(msg, "data", b""))
     if kind == "compressed":
         return stamp, frame_id, ImagePayload("compressed", str(_get(msg, "format", "") or ""), data)
+    if kind == "video":  # foxglove CompressedVideo: format; FFMPEGPacket: encoding, flags (AV_PKT_FLAG_KEY)
+        flags = _get(msg, "flags")
+        return stamp, frame_id, ImagePayload(
+            "video", str(_get(msg, "format", None) or _get(msg, "encoding", "") or ""), data,
+            width=int(_get(msg, "width", 0) or 0), height=int(_get(msg, "height", 0) or 0),
+            keyframe=None if flags is None else bool(int(flags) & 1))
     return stamp, frame_id, ImagePayload(
         "raw",
         str(_get(msg, "encoding", "") or ""),

@@ -7,7 +7,7 @@ from typing import Literal
 
 __all__ = ["ImagePayload", "TopicInfo", "LogInfo"]
 
-PayloadKind = Literal["compressed", "raw"]
+PayloadKind = Literal["compressed", "raw", "video"]
 
 
 @dataclass(frozen=True)
@@ -19,6 +19,10 @@ class ImagePayload:
     ``"bgr8; jpeg compressed bgr8"``).
     ``kind == "raw"``: ``data`` holds ``height`` rows of ``step`` bytes in the ROS
     ``encoding`` (``mono8``, ``bgr8``, ``bayer_rggb8``, ``yuv422`` ...).
+    ``kind == "video"``: ``data`` is one packet of a video stream (:mod:`memlog.io.video`),
+    ``encoding`` its codec or FFmpeg encoder name, ``keyframe`` the packet's own key flag when the
+    message has one (FFMPEGPacket); :meth:`memlog.io.base.LogReader.stream` decodes it into a raw
+    ``bgr8`` payload.
     """
 
     kind: PayloadKind
@@ -28,6 +32,7 @@ class ImagePayload:
     height: int = 0
     step: int = 0
     is_bigendian: bool = False
+    keyframe: bool | None = None
 
 
 @dataclass

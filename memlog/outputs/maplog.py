@@ -1,7 +1,9 @@
 """The memorable-map log of ``memlog map``: the kept frames only, compressed, in the input's profile.
 
-Compressed frames are copied byte for byte; raw frames are encoded to JPEG/PNG and written as
-``CompressedImage`` on ``T/compressed``. Each kept frame's score record goes to ``T/memlog/scores``
+Compressed frames are copied byte for byte; raw frames, and the frames of a video topic (a map of
+isolated frames cannot be a video stream: each kept frame is decoded from its stream), are encoded to
+JPEG/PNG and written as ``CompressedImage`` on ``T/compressed`` (:func:`image_topic`; the map's
+metadata names each in ``frames_written_as``). Each kept frame's score record goes to ``T/memlog/scores``
 (``memlog.FrameScores``). Both are in the input's encoding family (:mod:`memlog.outputs.channels`:
 ``sensor_msgs/CompressedImage`` + ``memlog_msgs/FrameScores`` in ROS 2 CDR or ROS 1, Foxglove JSON
 or protobuf). Topics the user keeps whole (GPS, odometry) are copied; metadata ``memlog_map``
@@ -42,6 +44,12 @@ def encode_image(img: npt.NDArray[np.uint8], fmt: str, quality: int) -> bytes:
 _PROFILE_FAMILY = {"ros1": "ros1", "ros2": "ros2"}
 
 
+def image_topic(topic: str, msgtype: str) -> str:
+    """Where a map log keeps the frames of camera ``topic`` (of type ``msgtype``): the topic itself
+    for compressed images (copied byte for byte), else ``topic/compressed`` (encoded images)."""
+    return topic if camera_kind(msgtype) == "compressed" else f"{topic}/compressed"
+
+
 class MapLogWriter:
     """Writes a map log: :meth:`write_frame` for each kept frame (with its raw record and score
     record), :meth:`write_passthrough` for messages of kept-whole topics, :meth:`close` with the
@@ -65,11 +73,11 @@ class MapLogWriter:
         return self.w.path
 
     def write_frame(self, frame: Frame, raw: RawMessage, score: Mapping[str, Any] | None) -> None:
-        """A kept frame: compressed payloads byte for byte, raw ones encoded; then its score record."""
+        """A kept frame: compressed payloads byte for byte, raw and video ones encoded; then its score record."""
         if camera_kind(frame.msgtype) == "compressed":
             self.w.write_raw(raw)
         else:
-            topic = f"{frame.topic}/compressed"
+            topic = image_topic(frame.topic, frame.msgtype)
             if topic not in self._image_ch:
                 self._image_ch[topic] = self.out.add(topic, IMAGE)
             sec, nsec = divmod(frame.stamp_ns, 1_000_000_000)

@@ -310,10 +310,7 @@ def _described(log: str, path: Path, describer: Describer, window: FrameWindow, 
 def _frame_counts(log: str, topic: str | None) -> tuple[str, int | None]:
     """The camera topic evaluated in ``log`` and its number of frames (from the index)."""
     with open_log(log) as reader:
-        cams = reader.check_camera_topics([topic] if topic else None)
-        if not cams:
-            raise EvaluationError(f"{log}: no camera topic")
-        t = cams[0]
+        t = reader.check_camera_topics([topic] if topic else None)[0]
         return t, reader.count_frames(FrameWindow((t,)))
 
 

@@ -24,7 +24,8 @@ from memlog.io.positions import PositionTrack
 from memlog.io.records import ReadReport
 from memlog.outputs.channels import family_of
 from memlog.outputs.map_artefact import write_map
-from memlog.outputs.maplog import MapLogWriter
+from memlog.io.camera import camera_kind
+from memlog.outputs.maplog import MapLogWriter, image_topic
 from memlog.progress import info, progress
 from memlog.selection import ScoreTable, Selection
 from memlog.scoring.motion import Stops, find_stops, moving_index, stops_record
@@ -176,7 +177,9 @@ def _described(reader: LogReader, cfg: Any, plan: MapPlan, result: MapResult, dp
 def _metadata(reader: LogReader, cfg: Any, plan: MapPlan, result: MapResult, bytes_kept: int) -> dict[str, str]:
     """The map log's ``memlog_map`` metadata: the run's settings, the selection and what was kept."""
     sel_cfg = cfg.select
+    encoded = _encoded(reader, plan.cams)
     return {
+        **({"frames_encoded_as": json.dumps(encoded, sort_keys=True)} if encoded else {}),
         "descriptor": json.dumps(plan.choice.to_dict() if plan.choice else None, sort_keys=True),
         "whitening": json.dumps(result.whitening, sort_keys=True),
         "memlog_version": __version__, "input": str(reader.path), "config": cfg.score.to_json(),
@@ -189,6 +192,20 @@ def _metadata(reader: LogReader, cfg: Any, plan: MapPlan, result: MapResult, byt
         "kept_by": plan.kept_by,
         "resmem_crops_run": json.dumps(plan.crops[0]), "resmem_crops_full_scoring": json.dumps(plan.crops[1]),
     }
+
+
+def _encoded(reader: LogReader, cams: list[str]) -> dict[str, dict[str, str]]:
+    """The camera topics whose kept frames the map log holds as encoded images, not as their own
+    messages (video: a map of isolated frames cannot be a video stream; raw images): for each, the
+    topic they are on and where they came from (none for compressed images: copied byte for byte)."""
+    out = {}
+    for c in reader.channels():
+        kind = camera_kind(c.msgtype)
+        if c.topic in cams and kind != "compressed":
+            out[c.topic] = {"topic": image_topic(c.topic, c.msgtype), "from": c.msgtype,
+                            "how": "each kept frame decoded from the video stream and encoded as an image"
+                            if kind == "video" else "each kept frame encoded as an image"}
+    return out
 
 
 def _moving(frames: list[Frame], tables: dict[str, ScoreTable], still_distance: float
