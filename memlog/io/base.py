@@ -272,10 +272,11 @@ class LogReader(ABC):
 
     def check_camera_topics(self, topics: Iterable[str] | None) -> list[str]:
         """The camera topics to stream: ``topics`` (checked: each must be a camera topic of
-        this log) or, when None, every camera topic. :class:`TopicError` names what is wrong."""
+        this log) or, when None, every camera topic (an undamaged log without one is a usage error
+        that lists its topics and types). :class:`TopicError` names what is wrong."""
         cams = self.camera_topics()
         if topics is None:
-            if not cams:
+            if not cams and self.report.ok:  # (a damaged log may have lost its camera channels: damage, not usage)
                 seen = ", ".join(f"{c.topic} ({c.msgtype})" for c in sorted(self.channels(), key=lambda c: c.topic))
                 raise TopicError(f"{self.path}: no camera topic memlog can read (topics: {seen or 'none'}); memlog "
                                  f"reads {', '.join(CAMERA_TYPES)}")
