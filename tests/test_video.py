@@ -14,6 +14,8 @@ drives as JPEG.
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +26,6 @@ import pytest
 from mcap.reader import make_reader
 
 from fixtures.video_logs import FAMILIES, encode, reencode_log, write_video_log
-from memlog.cli.app import main
 from memlog.io.open import open_log
 from memlog.io.video import codec_of, is_keyframe
 from tests.conftest import shared
@@ -35,6 +36,13 @@ DT = 100_000_000
 TOPIC = "/camera/video"
 #: Decoded frames against their source: every codec at its fixture settings stays above this.
 MIN_PSNR_DB = 30.0
+
+
+def main(argv: list[str]) -> int:
+    """``memlog ARGV`` in its own process, as a user runs it (its workers, models and threads end with it)."""
+    proc = subprocess.run([sys.executable, "-m", "memlog", *argv], capture_output=True, text=True)
+    sys.stderr.write(proc.stderr)
+    return proc.returncode
 
 
 def pan(n: int, size: tuple[int, int] = (320, 240), step: int = 4) -> list[np.ndarray]:
@@ -121,12 +129,12 @@ def test_a_window_starting_mid_stream_decodes_from_the_keyframe_before_it(
 
 def test_a_stream_cut_before_its_first_keyframe_is_damage(tmp_path: Path, frames: list[np.ndarray],
                                                           packets: dict[str, list[tuple[bytes, bool]]],
-                                                          capsys: pytest.CaptureFixture[str]) -> None:
+                                                          capfd: pytest.CaptureFixture[str]) -> None:
     """A recording that starts mid-GOP: its frames before the first keyframe cannot be decoded; they
     are reported with topic and index, exit 3, and every frame from the keyframe on is scored."""
     path = write_video_log(tmp_path / "cut.mcap", packets["h264"][5:], stamps(31))  # keyframe at 7 (was 12)
     assert main(["score", str(path), "-o", str(tmp_path / "cut.scored.mcap")]) == 3
-    err = capsys.readouterr().err
+    err = capfd.readouterr().err
     assert f"topic {TOPIC} message 0" in err and "no keyframe" in err and "Traceback" not in err
     assert "7 frame(s) did not decode" in err
     with open_log(path) as log:
@@ -158,7 +166,7 @@ def test_a_format_memlog_does_not_decode_is_reported(tmp_path: Path,
 
 
 def test_a_log_without_a_camera_topic_is_a_usage_error_that_lists_its_topics(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+        tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     from mcap.writer import Writer
 
     path = tmp_path / "gps.mcap"
@@ -169,7 +177,7 @@ def test_a_log_without_a_camera_topic_is_a_usage_error_that_lists_its_topics(
         w.add_message(ch, log_time=T0, publish_time=T0, data=b"{}")
         w.finish()
     assert main(["-q", "map", str(path), "-o", str(tmp_path / "m.mcap")]) == 2
-    err = capsys.readouterr().err
+    err = capfd.readouterr().err
     assert "no camera topic memlog can read" in err and "/gps (foxglove.LocationFix)" in err
     assert "foxglove.CompressedVideo" in err  # what it reads
 

@@ -50,6 +50,8 @@ from concurrent.futures.process import BrokenProcessPool
 from multiprocessing.context import BaseContext
 from typing import Any, Protocol, TypeVar
 
+import numpy as np
+
 from memlog.errors import ConfigError
 from memlog.runtime import Runtime, current, install
 
@@ -203,7 +205,28 @@ def _start_worker(runtime: Runtime, setup: Callable[[bool, dict[str, int]], None
     """A local worker's initializer: the driver's runtime context, then ``setup(quiet, levels)``
     (:func:`worker_setup`, or what replaces it)."""
     install(runtime)
+    _one_blas_thread()
     setup(quiet, levels)
+
+
+def _one_blas_thread() -> None:
+    """Run numpy's OpenBLAS on one thread in a worker: the workers share the cores already, and
+    OpenBLAS's own threads, idling in a worker beside ONNX Runtime's and the frame pipeline's, were
+    seen to stall a job for minutes. Nothing happens where numpy has another BLAS."""
+    import ctypes
+    import glob
+
+    libs = os.path.join(os.path.dirname(os.path.dirname(np.__file__)), "numpy.libs")
+    for path in glob.glob(os.path.join(libs, "libscipy_openblas*.so")) + glob.glob(os.path.join(libs, "libopenblas*.so")):
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for name in ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads", "openblas_set_num_threads"):
+            fn = getattr(lib, name, None)
+            if fn is not None:
+                fn(1)
+                return
 
 
 def _nothing() -> None:
