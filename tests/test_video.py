@@ -29,6 +29,7 @@ from fixtures.video_logs import FAMILIES, encode, reencode_log, write_video_log
 from memlog.io.open import open_log
 from memlog.io.video import codec_of, is_keyframe
 from tests.conftest import shared
+from tests.test_drive_pair import _scores
 from tests.same_outputs import normalised_map, normalised_parquet, normalised_scored
 
 T0 = 1_700_000_000_000_000_000
@@ -257,12 +258,6 @@ def test_evaluate_and_batch_take_video_topics(drive: Path, tmp_path: Path) -> No
     assert (tmp_path / "b" / "drive.map.parquet").is_file()
 
 
-def _r1(matches: Path, truth: list[list[int]]) -> float:
-    t = pq.read_table(matches).to_pydict()
-    best = {q: r for q, r, k in zip(t["query_id"], t["ref_id"], t["rank"]) if k == 0}
-    return float(np.mean([q in best and best[q] in set(m) for q, m in enumerate(truth)]))
-
-
 @pytest.mark.parametrize("pair", ["stromovka", "stromovka_drive"])
 def test_stromovka_as_h264_localizes_as_the_jpeg_logs(tmp_path: Path, pair: str) -> None:
     """Both Stromovka pairs re-encoded as H.264 (Foxglove JSON), through `memlog map --keep-fraction 1`
@@ -280,7 +275,7 @@ def test_stromovka_as_h264_localizes_as_the_jpeg_logs(tmp_path: Path, pair: str)
         assert main(["-q", "map", str(ref), "-o", str(m), "--keep-fraction", "1"]) == 0
         assert main(["-q", "localize", str(m.with_suffix(".parquet")), str(query), "-o",
                      str(tmp_path / f"{kind}.x.parquet"), "--map", str(m)]) == 0
-        r1[kind] = _r1(tmp_path / f"{kind}.x.parquet", truth)
+        r1[kind] = _scores(tmp_path / f"{kind}.x.parquet", truth)[0]  # R@1, the hits counted by hand
     if pair == "stromovka":
         assert abs(r1["h264"] - r1["jpeg"]) <= 0.02 + 1e-9, r1
     else:

@@ -20,7 +20,7 @@ from memlog.io.frame import Frame
 from memlog.io.frame_table import FrameTable
 from memlog.io.records import Attachment, ChannelInfo, RawMessage, ReadReport
 from memlog.io.types import ImagePayload, LogInfo, TopicInfo
-from memlog.io.video import VIDEO_CODECS, VideoDecoder, codec_of, is_keyframe, keyframe_before
+from memlog.io.video import VIDEO_CODECS, VideoDecoder, codec_of, keyframe_before, payload_is_keyframe
 from memlog.runtime import current
 
 __all__ = ["LogReader", "FrameError", "StreamItem", "FrameWindow"]
@@ -405,8 +405,7 @@ class LogReader(ABC):
                 except Exception:  # a packet that does not deserialize is reported where it is streamed
                     continue
                 codec = codec_of(payload.encoding)
-                if codec is not None and is_keyframe(codec, payload.data, None if payload.keyframe is None
-                                                     else int(payload.keyframe)):
+                if codec is not None and payload_is_keyframe(codec, payload):
                     found.append(idx)
             return np.asarray(sorted(found), dtype=np.int64)
 
@@ -432,8 +431,7 @@ class LogReader(ABC):
             return None
         if dec is None or dec.codec != codec:
             dec = videos[topic] = VideoDecoder(codec, topic)
-        key = is_keyframe(codec, frame.payload.data, None if frame.payload.keyframe is None
-                          else int(frame.payload.keyframe))
+        key = payload_is_keyframe(codec, frame.payload)
         try:
             bgr = dec.decode(frame.payload.data, key, wanted)
         except ImageDecodeError as exc:

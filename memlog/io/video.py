@@ -30,8 +30,10 @@ import numpy as np
 import numpy.typing as npt
 
 from memlog.errors import ImageDecodeError
+from memlog.io.types import ImagePayload
 
-__all__ = ["VIDEO_CODECS", "VideoDamage", "VideoDecoder", "codec_of", "is_keyframe", "keyframe_before"]
+__all__ = ["VIDEO_CODECS", "VideoDamage", "VideoDecoder", "codec_of", "is_keyframe", "keyframe_before",
+           "payload_is_keyframe"]
 
 #: The codecs memlog decodes, by the names Foxglove's ``format`` field uses.
 VIDEO_CODECS = ("h264", "h265", "vp9", "av1")
@@ -126,6 +128,11 @@ def is_keyframe(codec: str, data: bytes, flags: int | None = None) -> bool:
     if codec == "vp9":
         return _vp9_key(data)
     return False
+
+
+def payload_is_keyframe(codec: str, payload: ImagePayload) -> bool:
+    """:func:`is_keyframe` of a video payload: its message's own key flag when it has one, else its bytes."""
+    return is_keyframe(codec, payload.data, None if payload.keyframe is None else int(payload.keyframe))
 
 
 def keyframe_before(keyframes: npt.NDArray[np.int64], index: int) -> int:
