@@ -34,8 +34,10 @@ TIMING = frozenset({
     "seconds", "mean_ms_per_frame", "timing_ms", "seconds_per_query", "match_seconds_per_query", "ms_per_query",
     "timing", "timing_map", "search_timing",
 })
-#: Keys that hold the size or hash of a file that holds timing fields.
-PLACES = frozenset({"descriptors_sha256", "map_sha256", "memlog.map_sha256", "bytes_out", "byte_fraction"})
+#: Keys that hold the size or hash of a file that holds timing fields, or an input file's modification
+#: time (which a copy of the shared data changes).
+PLACES = frozenset({"descriptors_sha256", "map_sha256", "memlog.map_sha256", "bytes_out", "byte_fraction",
+                    "mtime_ns"})
 
 #: The commands: name -> argument list (``{D}`` the shared data folder, paths relative to the run's folder).
 COMMANDS: dict[str, list[str]] = {
