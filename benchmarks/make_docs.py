@@ -286,6 +286,16 @@ BENCHES: list[Bench] = [
           ("python", "benchmarks/video_decode.py"),
           "what a video camera topic costs to read: H.264 against JPEG at 960x540, per frame read",
           2, ("shared",)),
+    Bench("read_count",
+          ("python", "benchmarks/read_count.py", "--work", "{work}/reads"),
+          "how many times `map`, `map --workers 2` and `batch` read a damaged and an unfinished log (bytes read from "
+          "it over its size, and opens, under strace)",
+          8, ("shared",)),
+    Bench("gpu_check",
+          ("python", "benchmarks/gpu_check.py", "--smoke", "--work", "{work}/gpu"),
+          "the GPU path: `score`, `map` and `localize` on CUDA against the CPU (frames/s, the provider each model "
+          "runs on, agreement); without a GPU, the CPU fallback",
+          2, ("shared",)),
     Bench("damage_sweep",
           ("python", "benchmarks/damage_sweep.py"),
           "hundreds of damaged or wrong copies of the fixtures and shared logs through the readers, `inspect` and "
@@ -319,6 +329,8 @@ TITLES = {
     "resmem_flops": "ResMem's FLOPs and GPU throughput",
     "record_codecs": "score record codecs",
     "video_decode": "video camera topics: decoding H.264 against JPEG",
+    "read_count": "reads of a damaged or unfinished log per job",
+    "gpu_check": "the GPU path and its CPU fallback",
     "damage_sweep": "the damage sweep",
 }
 

@@ -1,14 +1,15 @@
 #!/usr/bin/env python3
 """Frames per second of memlog's commands at camera resolution, with peak memory and where the time goes.
 
-Logs: the shared Stromovka autumn drive (101 frames, 1024x384 JPEG) and a longer drive built from it
+Logs: the shared Stromovka autumn drive (101 frames, 1024x384 JPEG), a longer drive built from it
 (``--frames``, default 1010: each frame repeated with small shifts, 2 px to the side per repeat and
 a pixel up or down, re-encoded as JPEG quality 95, 10 Hz, written with memlog's MCAP writer to
-``--work``). Commands, each run as a subprocess of its own (``memlog ... -q``; peak RSS of that
+``--work``) and ``960x540``, the same built from Stromovka's frames resized to 960x540 (``--frames-960``,
+default 303: the pixel count of the 960x540 camera drives the speed targets are stated for). Commands, each run as a subprocess of its own (``memlog ... -q``; peak RSS of that
 process tree's largest process, ``RUSAGE_CHILDREN`` of a wrapper started for it):
 
 * ``map``: ``memlog map LOG -o MAP`` with the defaults;
-* ``score --fast`` and ``score`` (exact; on the long drive only with ``--exact-long``): the
+* ``score --fast`` and ``score`` (exact; on the built drives only with ``--exact-long``): the
   annotated MCAP of every frame;
 * ``evaluate``: ``memlog evaluate`` of the Stromovka pair (autumn reference, winter query, the
   shared truth file); its frames/s counts both drives' frames.
@@ -79,15 +80,17 @@ _IDLE = (("threading.py", "wait"), ("threading.py", "_wait_for_tstate_lock"), ("
 
 
 # -- the long drive ----------------------------------------------------------------------------------
-def long_drive(out: Path, frames: int) -> Path:
-    """Stromovka autumn, each frame repeated with small shifts until ``frames`` frames (10 Hz)."""
+def long_drive(out: Path, frames: int, size: tuple[int, int] | None = None) -> Path:
+    """Stromovka autumn, each frame repeated with small shifts until ``frames`` frames (10 Hz);
+    ``size`` (width, height): each frame first resized to it (960x540: the pixel count of the
+    960x540 camera drives the speed targets are stated for; Stromovka's 1024x384 stretched)."""
     import cv2
     import numpy as np
     from rosbags.typesys import Stores, get_typestore
 
     from memlog.io import McapLogWriter, open_log
 
-    path = out / f"stromovka_long_{frames}.mcap"
+    path = out / (f"stromovka_long_{frames}.mcap" if size is None else f"stromovka_{size[0]}x{size[1]}_{frames}.mcap")
     if path.exists():
         return path
     store = get_typestore(Stores.ROS2_HUMBLE)
@@ -103,6 +106,8 @@ def long_drive(out: Path, frames: int) -> Path:
         for src in msgs:
             m = store.deserialize_cdr(src.data, ctype)
             img = cv2.imdecode(np.frombuffer(bytes(m.data), np.uint8), cv2.IMREAD_COLOR)
+            if size is not None:
+                img = cv2.resize(img, size, interpolation=cv2.INTER_LINEAR)
             for r in range(reps):
                 if j >= frames:
                     break
@@ -280,12 +285,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", default="/tmp/memlog_speed", help="where the long drive and the outputs go")
     ap.add_argument("--frames", type=int, default=1010, help="frames of the long drive")
-    ap.add_argument("--logs", default="stromovka,long", help="stromovka and/or long")
+    ap.add_argument("--logs", default="960x540,stromovka,long", help="960x540, stromovka and/or long")
+    ap.add_argument("--frames-960", type=int, default=303, help="frames of the 960x540 drive")
     ap.add_argument("--commands", default=",".join(COMMANDS),
                     help=f"of {', '.join(COMMANDS)}, map-w2 (`memlog map --workers 2`)")
     ap.add_argument("--exact-long", action="store_true", help="also `memlog score` (exact) on the long drive")
     ap.add_argument("--no-profile", action="store_true", help="no stage shares (no second run)")
-    ap.add_argument("--profile-logs", default="stromovka,long", help="the logs whose commands are profiled")
+    ap.add_argument("--profile-logs", default="960x540,stromovka,long", help="the logs whose commands are profiled")
     ap.add_argument("--pythonpath", help="run memlog from this tree (before/after comparisons)")
     ap.add_argument("--json", help="also write the rows as JSON here")
     ap.add_argument("--sample", help=argparse.SUPPRESS)
@@ -301,6 +307,8 @@ def main(argv: list[str] | None = None) -> int:
             logs[name] = SHARED / AUTUMN
         elif name == "long":
             logs[name] = long_drive(work, a.frames)
+        elif name == "960x540":
+            logs[name] = long_drive(work, a.frames_960, (960, 540))
         else:
             ap.error(f"unknown log {name!r}")
     rows: list[dict[str, Any]] = []
@@ -311,7 +319,7 @@ def main(argv: list[str] | None = None) -> int:
                 ap.error(f"unknown command {cname!r}")
             if cname == "evaluate" and lname != "stromovka":
                 continue  # the pair: Stromovka autumn/winter
-            if cname == "score" and lname == "long" and not a.exact_long:
+            if cname == "score" and lname != "stromovka" and not a.exact_long:
                 continue
             out = work / f"{lname}-{cname}"
             shutil.rmtree(out, ignore_errors=True)

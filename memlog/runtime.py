@@ -34,7 +34,7 @@ from typing import Any, Literal, Protocol, TypeVar, cast
 from memlog.errors import ConfigError, MemlogError, ScoringError
 
 __all__ = ["Runtime", "OpenedLogs", "ModelCache", "current", "install", "use", "DEFAULT_MAX_PIXELS",
-           "ENTROPY_KERNELS"]
+           "ENTROPY_KERNELS", "DEVICES"]
 
 #: Largest image (width x height) memlog decodes unless told otherwise (``--max-pixels``,
 #: ``MEMLOG_MAX_PIXELS``): 100 MP is ten times a 4K frame.
@@ -45,6 +45,8 @@ ENTROPY_KERNELS: tuple[str, ...] = ("auto", "c", "numpy")
 DEFAULT_MODEL_CACHE_SIZE = 8
 #: Logs whose structure is kept when no reader uses them.
 DEFAULT_OPENED_LOGS = 8
+#: Where models may run (``auto``: a CUDA GPU when ONNX Runtime offers one).
+DEVICES: tuple[str, ...] = ("auto", "cpu", "cuda")
 
 EntropyKernel = Literal["auto", "c", "numpy"]
 T = TypeVar("T")
@@ -207,7 +209,9 @@ class Runtime:
     ``"c"`` or ``"numpy"`` (:func:`memlog.scoring.entropy.entropy_kernel`); ``model_cache_size``:
     models kept per process; ``cache_dir``: the model cache directory (None: ``~/.cache/memlog``);
     ``debug``: internal errors print their traceback; ``ray_address``: the Ray cluster to join
-    when none is named (None: a new local instance). ``opened`` and ``models`` are the caches (and
+    when none is named (None: a new local instance); ``device``: where models run when a step
+    says ``auto`` (``MEMLOG_DEVICE``: ``auto``, a CUDA GPU when ONNX Runtime has one, ``cpu`` or
+    ``cuda``; it also reaches the descriptors of ``localize`` and ``evaluate``, which have no flag). ``opened`` and ``models`` are the caches (and
 ``indexes``: what reading a log's data taught, such as a video topic's keyframes); a
     Runtime made by :meth:`replace` shares them (and its ``model_cache_size`` bounds the shared model
     cache from then on), one that is unpickled has empty ones."""
@@ -218,6 +222,7 @@ class Runtime:
     cache_dir: str | None = None
     debug: bool = False
     ray_address: str | None = None
+    device: str = "auto"
     opened: OpenedLogs = field(default_factory=OpenedLogs, compare=False, repr=False)
     models: ModelCache = field(default_factory=ModelCache, compare=False, repr=False)
     indexes: ModelCache = field(default_factory=lambda: ModelCache(64), compare=False, repr=False)
@@ -229,6 +234,8 @@ class Runtime:
         if self.entropy_kernel not in ENTROPY_KERNELS:
             raise ScoringError(f"entropy kernel must be one of {', '.join(ENTROPY_KERNELS)}, "
                                f"got {self.entropy_kernel!r}")
+        if self.device not in DEVICES:
+            raise ConfigError(f"the device must be one of {', '.join(DEVICES)}, got {self.device!r}")
         size = self.model_cache_size
         if isinstance(size, bool) or not isinstance(size, int) or size < 1:
             raise ConfigError(f"the model cache size must be an integer >= 1, got {size!r}")
@@ -318,6 +325,13 @@ def _debug(env: Mapping[str, str]) -> dict[str, Any]:
     return {"debug": True} if env.get("MEMLOG_DEBUG") else {}
 
 
+def _device(env: Mapping[str, str]) -> dict[str, Any]:
+    raw = _text(env, "MEMLOG_DEVICE").lower()
+    if raw not in ("", *DEVICES):
+        raise ConfigError(f"MEMLOG_DEVICE must be auto, cpu or cuda, got {raw!r}")
+    return {"device": raw} if raw else {}
+
+
 def _ray_address(env: Mapping[str, str]) -> dict[str, Any]:
     address = env.get("RAY_ADDRESS")
     return {"ray_address": address} if address else {}
@@ -325,7 +339,7 @@ def _ray_address(env: Mapping[str, str]) -> dict[str, Any]:
 
 #: What :meth:`Runtime.from_environment` reads, one variable (or two, for the cache) each.
 _PARSERS: tuple[Callable[[Mapping[str, str]], dict[str, Any]], ...] = (
-    _max_pixels, _entropy_kernel, _cache_dir, _debug, _ray_address)
+    _max_pixels, _entropy_kernel, _cache_dir, _debug, _ray_address, _device)
 
 
 # --------------------------------------------------------------------------- the one in force

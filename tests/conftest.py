@@ -120,6 +120,41 @@ def source_frames(fixture_script: ModuleType) -> list:
     return fixture_script.source_frames()
 
 
+@pytest.fixture(scope="session")
+def recorded_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The folder where the commands of :mod:`tests.recorded_outputs` ran once through the CLI (score,
+    map + localize of the Stromovka drive pair and of Nordland, evaluate of the drive pair): compared
+    with the recording by ``test_recorded_outputs``, and the drive pair's evaluation that
+    ``test_drive_pair`` checks against written maps (one run of the slowest command for both)."""
+    from tests.recorded_outputs import run_all
+
+    for name in ("euroc_micro_foxglove.mcap", "stromovka_drive_autumn.mcap", "stromovka_drive_winter.mcap",
+                 "stromovka_drive_truth.json", "nordland_dev_summer.mcap", "nordland_dev_winter.mcap"):
+        shared(name)
+    out = tmp_path_factory.mktemp("recorded_run")
+    run_all(out, summary=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def drive_pair_maps(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[Path, Path]]:
+    """The Stromovka drive pair through the CLI once for the session: ``memlog map`` of the autumn
+    drive with ``--keep-fraction 1`` (``full``) and with the defaults (``default``), each then
+    ``memlog localize`` of the winter drive: name -> (the map's Parquet, the match table)."""
+    from memlog.cli.app import main
+
+    autumn, winter = shared("stromovka_drive_autumn.mcap"), shared("stromovka_drive_winter.mcap")
+    d = tmp_path_factory.mktemp("drive_pair_maps")
+    out = {}
+    for name, args in (("full", ["--keep-fraction", "1"]), ("default", [])):
+        m = d / f"{name}.mcap"
+        assert main(["-q", "map", str(autumn), "-o", str(m), *args]) == 0
+        assert main(["-q", "localize", str(m.with_suffix(".parquet")), str(winter), "-o", str(d / f"{name}.x.parquet"),
+                     "--map", str(m)]) == 0
+        out[name] = (m.with_suffix(".parquet"), d / f"{name}.x.parquet")
+    return out
+
+
 @pytest.fixture()
 def copy_of(tmp_path: Path):  # type: ignore[no-untyped-def]
     """Copy a fixture (file or bag directory) into tmp_path, writable, for damaging."""

@@ -157,15 +157,16 @@ def summarise(out: Path) -> dict[str, Any]:
     return json.loads(text.replace(str(DATA), "<data>"))
 
 
-def run_all(out: Path) -> dict[str, Any]:
-    """Run :data:`COMMANDS` in ``out`` through the CLI and read back what they wrote."""
+def run_all(out: Path, summary: bool = True) -> dict[str, Any]:
+    """Run :data:`COMMANDS` in ``out`` through the CLI and read back what they wrote (``summary``
+    False: run them only, and return nothing)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     for name, argv in COMMANDS.items():
         cmd = [sys.executable, "-m", "memlog", *(a.replace("{D}", str(DATA)) for a in argv)]
         proc = subprocess.run(cmd, cwd=out, env=env, capture_output=True, text=True)
         if proc.returncode != 0:
             raise RuntimeError(f"{name}: exit {proc.returncode}\n{proc.stderr[-3000:]}")
-    return summarise(out)
+    return summarise(out) if summary else {}
 
 
 def recorded() -> Any:

@@ -1,7 +1,8 @@
 """``memlog batch --ray`` on a local Ray instance with 2 CPUs, started once for this module.
 
 * three fixture logs of different formats (ROS 2 MCAP bag, ROS 1 bag, ROS 2 sqlite bag) give the
-  outputs of local one-process ``score`` + ``make_map`` runs, timing fields aside; a rerun skips them;
+  outputs of local one-process ``score`` + ``make_map`` runs, timing fields aside, two logs at a time
+  sharing the actors (``--logs-at-once 2``); a rerun skips them;
 * the actors are planned from the Ray instance's nodes (``ray.nodes()``: one node, 2 CPUs) and
   pinned to it (a cluster of several nodes: ``tests/test_ray_nodes.py``);
 * a worker process killed once mid-task (from the test side: ``tests/worker_kill.py``) costs a
@@ -20,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -76,8 +78,11 @@ def want(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Path]]
 
 def test_three_formats_on_ray_give_the_local_outputs_and_resume(
         tmp_path: Path, stand_in: None, want: dict[str, dict[str, Path]]) -> None:
-    res = batch(LOGS, tmp_path, CFG)
+    """Two logs at a time share the actors (``--logs-at-once 2``): each log's outputs are its own
+    one-process ones, reported in the order given whatever order they ended; a rerun skips them."""
+    res = batch(LOGS, tmp_path, replace(CFG, logs_at_once=2))
     assert [r.status for r in res.logs] == ["ok", "ok", "ok"] and res.exit_code == 0
+    assert [Path(r.log).name for r in res.logs] == [log.name for log in LOGS]
     assert res.executor["kind"] == "ray" and res.executor["actors"] == 2 and res.executor["threads"] == 1
     assert res.executor["devices"] == ["cpu"]
     node = ray.get_runtime_context().get_node_id()  # the plan is the nodes Ray reports, per node
@@ -90,13 +95,6 @@ def test_three_formats_on_ray_give_the_local_outputs_and_resume(
     assert [r.frames for r in res.logs] == [4, 8, 4]
     again = batch(LOGS, tmp_path, CFG)
     assert [r.status for r in again.logs] == ["skipped"] * 3 and again.executor.get("started") is False
-
-
-def test_logs_at_once_share_the_actors(tmp_path: Path, stand_in: None, want: dict[str, dict[str, Path]]) -> None:
-    res = batch(LOGS, tmp_path, BatchConfig(ray=True, workers=2, chunk_frames=1, logs_at_once=2))
-    assert [r.status for r in res.logs] == ["ok", "ok", "ok"]  # in the order given, whatever order they ended
-    for r in res.logs:
-        assert_same_outputs(r.outputs, want[Path(r.log).name])
 
 
 @pytest.mark.shared

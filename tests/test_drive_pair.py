@@ -39,23 +39,21 @@ def _scores(matches: Path, truth: list[list[int]]) -> tuple[float, float]:
 
 
 @pytest.fixture(scope="module")
-def drive_pair(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+def drive_pair(tmp_path_factory: pytest.TempPathFactory, recorded_run: Path,
+               drive_pair_maps: dict[str, tuple[Path, Path]]) -> dict[str, Any]:
     d = tmp_path_factory.mktemp("drive_pair")
     autumn, winter = shared("stromovka_drive_autumn.mcap"), shared("stromovka_drive_winter.mcap")
     truth_file = shared("stromovka_drive_truth.json")
     truth = json.loads(truth_file.read_text())["matches"]
     out: dict[str, Any] = {"dir": d, "autumn": autumn, "winter": winter, "truth_file": truth_file, "truth": truth}
-    for name, args in (("full", ["--keep-fraction", "1"]), ("default", [])):
-        m = d / f"{name}.mcap"
-        assert main(["-q", "map", str(autumn), "-o", str(m), *args]) == 0
-        assert main(["-q", "localize", str(m.with_suffix(".parquet")), str(winter), "-o", str(d / f"{name}.x.parquet"),
-                     "--map", str(m)]) == 0
-        out[name] = (m.with_suffix(".parquet"), _scores(d / f"{name}.x.parquet", truth))
-    ev = d / "eval"
-    assert main(["-q", "evaluate", "--reference", str(autumn), "--query", str(winter), "--truth", str(truth_file),
-                 "-o", str(ev), "--seeds", "2"]) == 0
+    for name, (parquet, matches) in drive_pair_maps.items():  # `memlog map` (full, default), then `localize`
+        out[name] = (parquet, _scores(matches, truth))
+    # `memlog evaluate --reference AUTUMN --query WINTER --truth TRUTH -o OUT --seeds 2 --no-report`, run once
+    # for the session by the recorded_run fixture (tests/recorded_outputs.py COMMANDS["evaluate"])
+    ev = recorded_run / "evaluate"
     out["results"] = json.loads((ev / "results.json").read_text())
     out["eval"] = ev
+    out["ran_in"] = recorded_run
     return out
 
 
@@ -68,7 +66,8 @@ def test_evaluate_rows_are_the_maps_memlog_map_writes(drive_pair: dict[str, Any]
     if row == "memorable":
         assert sorted(res["kept_indices"]) == kept
     else:  # the full map is written beside the results, and keeps what `memlog map --keep-fraction 1` keeps
-        assert sorted(pq.read_table(Path(res["map"]).with_suffix(".parquet")).to_pydict()["frame_index"]) == kept
+        written = drive_pair["ran_in"] / res["map"]  # (evaluate ran with -o evaluate: paths relative to its folder)
+        assert sorted(pq.read_table(written.with_suffix(".parquet")).to_pydict()["frame_index"]) == kept
     assert res["recall@1"] == pytest.approx(r1, abs=1e-9)
     assert res["auc"] == pytest.approx(auc, abs=1e-9)
 
@@ -88,7 +87,7 @@ def test_every_kth_baseline_is_a_written_map(drive_pair: dict[str, Any], tmp_pat
     from mcap.reader import make_reader
 
     res = drive_pair["results"]["uniform"]
-    m = Path(res["map"])
+    m = drive_pair["ran_in"] / res["map"]
     kept = pq.read_table(m.with_suffix(".parquet")).to_pydict()["frame_index"]
     n = len(json.loads(drive_pair["truth_file"].read_text())["reference_places"])  # the drive's frames
     assert len(kept) == res["frames"] == drive_pair["results"]["memorable"]["frames"]

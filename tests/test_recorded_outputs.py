@@ -7,16 +7,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tests.conftest import shared
-from tests.recorded_outputs import COMMANDS, differences, recorded, run_all
+from tests.recorded_outputs import COMMANDS, differences, recorded, summarise
 
 
-def test_outputs_equal_the_recorded_ones(tmp_path: Path) -> None:
-    for name in ("euroc_micro_foxglove.mcap", "stromovka_drive_autumn.mcap", "stromovka_drive_winter.mcap",
-                 "stromovka_drive_truth.json", "nordland_dev_summer.mcap", "nordland_dev_winter.mcap"):
-        shared(name)
+def test_outputs_equal_the_recorded_ones(recorded_run: Path) -> None:
+    """(The commands run once for the session: the ``recorded_run`` fixture.)"""
     before = recorded()
-    now = run_all(tmp_path)
+    now = summarise(recorded_run)
     assert set(now) == set(before)
     diffs = differences(before, now)
     assert not diffs, f"{len(diffs)} difference(s) from the recorded outputs of {', '.join(COMMANDS)}:\n" + "\n".join(

@@ -259,7 +259,8 @@ def test_evaluate_and_batch_take_video_topics(drive: Path, tmp_path: Path) -> No
 
 
 @pytest.mark.parametrize("pair", ["stromovka", "stromovka_drive"])
-def test_stromovka_as_h264_localizes_as_the_jpeg_logs(tmp_path: Path, pair: str) -> None:
+def test_stromovka_as_h264_localizes_as_the_jpeg_logs(tmp_path: Path, pair: str,
+                                                     request: pytest.FixtureRequest) -> None:
     """Both Stromovka pairs re-encoded as H.264 (Foxglove JSON), through `memlog map --keep-fraction 1`
     then `memlog localize`, as the JPEG logs: R@1 within 0.02 on the frame-aligned pair; on the drive
     pair (whose matching is far more sensitive to small changes of the frames) no worse by more than 0.02."""
@@ -268,6 +269,9 @@ def test_stromovka_as_h264_localizes_as_the_jpeg_logs(tmp_path: Path, pair: str)
     r1 = {}
     for kind in ("jpeg", "h264"):
         ref, query = logs["autumn"], logs["winter"]
+        if kind == "jpeg" and pair == "stromovka_drive":  # the same commands, run once for the session
+            r1[kind] = _scores(request.getfixturevalue("drive_pair_maps")["full"][1], truth)[0]
+            continue
         if kind == "h264":
             ref, _ = reencode_log(ref, tmp_path / "autumn.h264.mcap")
             query, _ = reencode_log(query, tmp_path / "winter.h264.mcap")

@@ -187,13 +187,18 @@ class Whitening:
 
 
 class WhiteningFitter:
-    """Accumulates descriptors batch by batch (float64 sums: ``dim_in^2`` memory) and fits."""
+    """Accumulates descriptors batch by batch and fits. While fewer descriptors than ``dim_in``
+    were added they are kept (at most ``dim_in^2`` floats) and the fit diagonalises their
+    ``N x N`` Gram matrix (the same principal directions, far cheaper for long descriptors such as
+    thumbnails); beyond that the float64 sums (``dim_in^2`` memory) and the ``dim_in x dim_in``
+    covariance."""
 
     def __init__(self, dim_in: int) -> None:
         self.dim_in = int(dim_in)
         self.n = 0
         self._sum = np.zeros(self.dim_in)
-        self._outer = np.zeros((self.dim_in, self.dim_in))
+        self._rows: list[npt.NDArray[np.float64]] | None = []
+        self._outer: npt.NDArray[np.float64] | None = None
 
     def add(self, x: npt.ArrayLike) -> None:
         """Add descriptors ``[N, dim_in]`` (rows with NaN or all zeros are left out)."""
@@ -203,6 +208,14 @@ class WhiteningFitter:
         a = a[~blank_rows(a)]
         self.n += a.shape[0]
         self._sum += a.sum(axis=0)
+        if self._rows is not None:
+            self._rows.append(a)
+            if self.n < self.dim_in:
+                return
+            a = np.concatenate(self._rows)  # as many rows as dimensions: the sums from here on
+            self._rows = None
+            self._outer = np.zeros((self.dim_in, self.dim_in))
+        assert self._outer is not None
         self._outer += a.T @ a
 
     @property
@@ -222,16 +235,43 @@ class WhiteningFitter:
         if not (np.isfinite(eps) and eps >= 0):
             raise DescriptorError(f"whitening eps must be >= 0, got {eps}")
         mean = self._sum / self.n
-        cov = self._outer / self.n - np.outer(mean, mean)
-        vals, vecs = np.linalg.eigh((cov + cov.T) / 2.0)
-        order = np.argsort(vals)[::-1]
-        vals, vecs = np.clip(vals[order], 0.0, None), vecs[:, order]
         k = whitening_dim(self.n, self.dim_in, max_dim)
+        got = self._dual(mean, k) if self._rows is not None else None
+        if got is None:
+            vals, vecs = self._primal(mean)
+        else:
+            vals, vecs = got
         # a deterministic sign for each direction (eigh's signs are arbitrary): largest entry positive
+        vecs = vecs[:, :k]
         signs = np.sign(vecs[np.argmax(np.abs(vecs), axis=0), np.arange(vecs.shape[1])])
         vecs = vecs * np.where(signs == 0, 1.0, signs)
         scale = 1.0 / np.sqrt(vals[:k] + eps * max(float(vals[0]), 1e-12))
-        return Whitening(mean.astype(np.float32), (vecs[:, :k] * scale).astype(np.float32), self.n, float(eps), source)
+        return Whitening(mean.astype(np.float32), (vecs * scale).astype(np.float32), self.n, float(eps), source)
+
+    def _primal(self, mean: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Eigenvalues (descending, >= 0) and eigenvectors of the ``dim_in x dim_in`` covariance."""
+        outer = self._outer
+        if outer is None:
+            rows = np.concatenate(self._rows or [np.zeros((0, self.dim_in))])
+            outer = rows.T @ rows
+        cov = outer / self.n - np.outer(mean, mean)
+        vals, vecs = np.linalg.eigh((cov + cov.T) / 2.0)
+        order = np.argsort(vals)[::-1]
+        return np.clip(vals[order], 0.0, None), vecs[:, order]
+
+    def _dual(self, mean: npt.NDArray[np.float64], k: int
+              ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None:
+        """The top ``k`` eigenpairs of the covariance from the Gram matrix of the kept rows; None
+        when one of them is (numerically) zero, where only the full covariance defines a direction."""
+        xc = np.concatenate(self._rows or []) - mean
+        gram = xc @ xc.T / self.n
+        vals, u = np.linalg.eigh((gram + gram.T) / 2.0)
+        order = np.argsort(vals)[::-1][:k]
+        vals, u = vals[order], u[:, order]
+        if k == 0 or vals[-1] <= 1e-9 * max(float(vals[0]), 1e-300):
+            return None
+        vecs = xc.T @ u / np.sqrt(self.n * vals)
+        return vals, vecs
 
 
 def fit_whitening(x: npt.ArrayLike, max_dim: int | None = None, eps: float = DEFAULT_EPS, source: str = "") -> Whitening:

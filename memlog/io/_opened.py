@@ -22,20 +22,44 @@ The cache and its scan counts are the :class:`~memlog.runtime.OpenedLogs` of the
 in force (:func:`memlog.runtime.current`); the functions here use that one. A Runtime made by
 replacing a setting shares it; a reader releases its entry where it learned it as long as the
 Runtime in force keeps the same cache while it reads.
+
+**Across processes.** What a *scan* learned (an entry whose ``scanned`` is true: an unindexed or
+damaged MCAP read from its first byte) is also kept on disk, in the runtime context's cache
+directory (``<cache>/scans/``, keyed by the file's identity as above), so that memlog's worker
+processes and Ray actors on the same machine (or sharing the cache directory), and later runs,
+start from the driver's scan instead of reading the log again: one job reads a damaged log's
+bytes once to learn it. An entry read back says its warnings again in the new process (its
+``said`` starts empty). A record that does not load, was written by another memlog version or
+belongs to another file is ignored (and the log scanned); the records are loaded with an
+unpickler that admits memlog's, mcap's and numpy's plain types only; at most :data:`MAX_SCANS`
+records are kept (the oldest dropped). A cache directory that cannot be written only costs the
+scans.
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
+import logging
 import os
+import pickle
 from collections.abc import Callable, Hashable
+from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
+from memlog._version import __version__
 from memlog.runtime import DEFAULT_OPENED_LOGS, current
 
-__all__ = ["Learned", "learned", "release", "clear_cache", "file_key", "scans", "MAX_ENTRIES"]
+__all__ = ["Learned", "learned", "release", "clear_cache", "file_key", "scans", "MAX_ENTRIES", "MAX_SCANS",
+           "scan_record_path"]
 
 #: Logs whose structure is kept when no reader uses them.
 MAX_ENTRIES = DEFAULT_OPENED_LOGS
+#: Scan records kept on disk (the least recently written dropped first).
+MAX_SCANS = 256
+#: Bumped when what a scan record holds changes (with memlog's version, it must match to be used).
+_SCAN_FORMAT = 1
+_log = logging.getLogger(__name__)
 
 
 class Learned(Protocol):
@@ -66,9 +90,83 @@ def file_key(kind: str, path: str, *extra: Hashable) -> Hashable:
 
 
 def learned(key: Hashable, make: Callable[[], S]) -> tuple[S, bool]:
-    """The entry of ``key`` (made by ``make()`` when there is none) and whether it was made now.
-    The caller uses it until :func:`release`."""
-    return current().opened.learned(key, make)
+    """The entry of ``key`` (read back from its scan record, else made by ``make()``, when this
+    process has none) and whether it was made now (False when it was read back: the caller says
+    what it found as it does for an entry it did not make). The caller uses it until :func:`release`."""
+    recalled: list[bool] = []
+
+    def recall_or_make() -> S:
+        got = _recall(key)
+        if got is not None:
+            recalled.append(True)
+            return got  # type: ignore[no-any-return]
+        made = make()
+        if getattr(made, "scanned", False):
+            _remember(key, made)
+        return made
+
+    entry, new = current().opened.learned(key, recall_or_make)
+    return entry, new and not recalled
+
+
+def scan_record_path(key: Hashable) -> Path:
+    """Where the scan record of ``key`` (a :func:`file_key`) is kept."""
+    digest = hashlib.sha256(repr(key).encode()).hexdigest()[:32]
+    return current().cache_path() / "scans" / f"{digest}.pickle"
+
+
+class _PlainUnpickler(pickle.Unpickler):
+    """Loads only the plain types a scan record holds: builtins, memlog's and mcap's records,
+    numpy arrays."""
+
+    _MODULES = ("builtins", "collections", "copyreg", "numpy", "memlog.", "mcap.")
+
+    def find_class(self, module: str, name: str) -> Any:
+        if module == "builtins" and name in ("eval", "exec", "compile", "open", "__import__", "getattr"):
+            raise pickle.UnpicklingError(f"{module}.{name} is not allowed in a scan record")
+        if not any(module == m.rstrip(".") or module.startswith(m) for m in self._MODULES):
+            raise pickle.UnpicklingError(f"{module}.{name} is not allowed in a scan record")
+        return super().find_class(module, name)
+
+
+def _recall(key: Hashable) -> Any:
+    path = scan_record_path(key)
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        fmt, version, got_key, entry = _PlainUnpickler(io.BytesIO(data)).load()
+    except Exception as exc:  # noqa: BLE001 - a damaged or foreign record: scan again
+        _log.debug("scan record %s does not load (%s): scanning again", path, exc)
+        return None
+    if (fmt, version, got_key) != (_SCAN_FORMAT, __version__, key):
+        return None
+    entry.said = set()
+    return entry
+
+
+def _remember(key: Hashable, entry: Any) -> None:
+    path = scan_record_path(key)
+    said = entry.said
+    try:
+        entry.said = set()
+        data = pickle.dumps((_SCAN_FORMAT, __version__, key, entry), protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception as exc:  # noqa: BLE001 - an entry that does not pickle is kept in this process only
+        _log.debug("scan of %s not kept on disk: %s", key, exc)
+        return
+    finally:
+        entry.said = said
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+        old = sorted(path.parent.glob("*.pickle"), key=lambda p: p.stat().st_mtime)
+        for p in old[: max(0, len(old) - MAX_SCANS)]:
+            p.unlink(missing_ok=True)
+    except OSError as exc:
+        _log.debug("scan record %s not written: %s", path, exc)
 
 
 def release(key: Hashable) -> None:

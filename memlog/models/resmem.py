@@ -148,7 +148,10 @@ def crop_weights(s: npt.NDArray[Any] | None = None) -> F64:
     if s is None:
         col = a.sum(axis=0)
         return np.asarray(np.outer(col, col) / (FRAME * FRAME), dtype=np.float64)
-    return np.asarray(a.T @ check_static_map(s) @ a / (FRAME * FRAME), dtype=np.float64)
+    # einsum's own loops, not BLAS: the same sums in the same order whatever BLAS's thread count
+    # (workers run it on one thread), so a worker's weights are the driver's to the last bit
+    s_a = np.einsum("rc,cj->rj", np.asarray(check_static_map(s), dtype=np.float64), a)
+    return np.asarray(np.einsum("ri,rj->ij", a, s_a) / (FRAME * FRAME), dtype=np.float64)
 
 
 def run_crops(session: Any, crops: F32) -> F32:

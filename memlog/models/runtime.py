@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from memlog.errors import ModelError
+from memlog.runtime import DEVICES, current
 
 __all__ = [
     "DEVICES",
@@ -31,8 +32,8 @@ __all__ = [
 
 R = TypeVar("R")
 
-DEVICES = ("auto", "cpu", "cuda")
-GPU_INSTALL = "pip install 'memlog[gpu]' (onnxruntime-gpu, with a CUDA driver)"
+GPU_INSTALL = ("pip uninstall -y onnxruntime && pip install 'memlog[gpu]' (onnxruntime-gpu with NVIDIA's CUDA and "
+               "cuDNN wheels; the machine needs the NVIDIA driver)")
 _CUDA = "CUDAExecutionProvider"
 _CPU = "CPUExecutionProvider"
 
@@ -55,16 +56,19 @@ def cuda_available() -> bool:
 
 
 def choose_providers(device: str = "auto") -> list[str]:
-    """The provider list for ``device`` (see the module doc); :class:`ModelError` for ``cuda``
-    without CUDA, naming the install command."""
+    """The provider list for ``device`` (see the module doc; ``auto`` is the runtime context's
+    device, :attr:`memlog.runtime.Runtime.device`); :class:`ModelError` for ``cuda`` without
+    CUDA, naming the install command."""
     if device not in DEVICES:
         raise ModelError(f"device must be one of {', '.join(DEVICES)}, got {device!r}")
+    if device == "auto":
+        device = current().device
     if device == "cpu":
         return [_CPU]
     if cuda_available():
         return [_CUDA, _CPU]
     if device == "cuda":
-        raise ModelError(f"--device cuda: this ONNX Runtime has no CUDA execution provider; install {GPU_INSTALL}")
+        raise ModelError(f"--device cuda: this ONNX Runtime has no CUDA execution provider; install it: {GPU_INSTALL}")
     return [_CPU]
 
 
@@ -112,6 +116,8 @@ def detector_backend(device: str = "auto") -> tuple[str, int, int]:
 
     if device not in DEVICES:
         raise ModelError(f"device must be one of {', '.join(DEVICES)}, got {device!r}")
+    if device == "auto":
+        device = current().device
     has_cuda = False
     if device != "cpu":
         try:

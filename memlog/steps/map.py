@@ -412,7 +412,8 @@ def _staged(log: str, reader: LogReader, cfg: MapConfig, cams: list[str], track:
     if not detect_first:
         rule = DetectRule(mode, (float(sel_cfg.weights[0]), float(sel_cfg.weights[1]), float(sel_cfg.weights[2])),
                           sel_cfg.min_ss, sel_cfg.min_es, sel_cfg.centre_tolerance)
-        _detect_staged(log, score_cfg, window, ex, cut, rule, resmem)
+        _detect_staged(log, score_cfg, window, ex, cut, rule, resmem,
+                       {t: reader.frame_table(t).entries()[1] for t in cut})
         for good, table, _seg, _coord in cut.values():
             table.ss, table.es = _scores_of(good, "ss"), _scores_of(good, "es")
     jobs: list[tuple[str, list[int], SegmentJob]] = []
@@ -471,9 +472,11 @@ def _warm_detector(config: ScoreConfig) -> Future[None] | None:
 
 def _detect_staged(log: str, score_cfg: ScoreConfig, window: FrameWindow, ex: Executor,
                    cut: dict[str, tuple[list[CheapFrame], ScoreTable, np.ndarray, np.ndarray | None]],
-                   rule: DetectRule, crops: bool) -> None:
+                   rule: DetectRule, crops: bool, containers: Mapping[str, np.ndarray] | None = None) -> None:
     """The detector on the frames of each segment that can still be its candidate
-    (:func:`~memlog.steps.map_scoring.detect_segments`); fills their SS, ES and detections in."""
+    (:func:`~memlog.steps.map_scoring.detect_segments`); fills their SS, ES and detections in.
+    ``containers``: per topic, the log chunk each frame lies in (a worker's group of segments then
+    ends where a log chunk ends, so two workers do not both read one chunk)."""
     djobs: list[tuple[list[CheapFrame], list[int], DetectJob]] = []
     for t, (good, table, seg, coord) in cut.items():
         starts = np.flatnonzero(np.concatenate([[True], seg[1:] != seg[:-1]]))
@@ -492,7 +495,7 @@ def _detect_staged(log: str, score_cfg: ScoreConfig, window: FrameWindow, ex: Ex
                          total=len(djobs), desc="staticity", unit="segment")
     else:
         group = max(1, min(32, len(djobs) // max(1, 4 * ex.workers)))
-        batches = [djobs[i:i + group] for i in range(0, len(djobs), group)]
+        batches = _segment_groups(djobs, group, containers or {})
         wcfg = score_cfg.replace(threads=job_threads(ex, score_cfg.threads))
         per_batch = progress(ex.map_ordered(detect_chunk, ((log, wcfg, window, [j for _, _, j in b], rule, crops)
                                                            for b in batches)),
@@ -508,6 +511,30 @@ def _detect_staged(log: str, score_cfg: ScoreConfig, window: FrameWindow, ex: Ex
     finally:
         if own is not None:
             own.close()
+
+
+def _segment_groups(djobs: list[tuple[list[CheapFrame], list[int], DetectJob]], group: int,
+                    containers: Mapping[str, np.ndarray]) -> list[list[tuple[list[CheapFrame], list[int], DetectJob]]]:
+    """``djobs`` in groups of about ``group`` segments, in order; a group goes on (by at most
+    ``group`` more) while the next segment starts in the log chunk the group ends in."""
+
+    def place(job: DetectJob, k: int) -> int | None:
+        c = containers.get(job.topic)
+        return None if c is None or not job.indices else int(c[job.indices[k]])
+
+    out = []
+    i = 0
+    while i < len(djobs):
+        j = min(i + group, len(djobs))
+        end = j
+        while end < len(djobs) and end - j < group and djobs[end][2].topic == djobs[end - 1][2].topic \
+                and place(djobs[end][2], 0) is not None and place(djobs[end][2], 0) == place(djobs[end - 1][2], -1):
+            end += 1
+        if end < len(djobs) and end - j >= group:
+            end = j  # the chunk goes on further: cut where asked
+        out.append(djobs[i:end])
+        i = end
+    return out
 
 
 def staged_stageable(cfg: MapConfig) -> bool:

@@ -183,12 +183,15 @@ def plan_chunks(reader: LogReader, window: FrameWindow, size: int) -> list[Chunk
 
     topics = sorted(set(reader.check_camera_topics(window.topics)))
     entries: list[tuple[int, int, str, int]] = []
+    place: dict[tuple[str, int], int] = {}  # (topic, frame) -> the container (log chunk) it lies in
     for k, t in enumerate(topics):
         table = reader.frame_table(t)
         first, last = table.window(window.start_ns, window.end_ns)
         idx = np.arange(first, last)
         idx = idx[idx % window.stride == 0]
         entries.extend((int(table.times[i]), k, t, int(i)) for i in idx)
+        containers = table.entries()[1]
+        place.update(((t, int(i)), int(containers[i])) for i in idx)
     entries.sort()
     chunks = []
     last_of: dict[str, tuple[int, int]] = {}
@@ -197,6 +200,7 @@ def plan_chunks(reader: LogReader, window: FrameWindow, size: int) -> list[Chunk
         b = min(a + size, len(entries))
         while b < len(entries) and entries[b][0] == entries[b - 1][0]:
             b += 1  # frames of one log time stay in one chunk (their order is the reader's)
+        b = _to_container_end(entries, place, a, b, size)
         part = entries[a:b]
         a = b
         ind: dict[str, set[int]] = {}
@@ -207,6 +211,23 @@ def plan_chunks(reader: LogReader, window: FrameWindow, size: int) -> list[Chunk
         chunks.append(Chunk({k: frozenset(v) for k, v in ind.items()}, part[0][0], part[-1][0] + 1, len(part),
                             {t: prev[t] for t in ind if t in prev}))
     return chunks
+
+
+def _to_container_end(entries: list[tuple[int, int, str, int]], place: dict[tuple[str, int], int], a: int, b: int,
+                      size: int) -> int:
+    """``b`` moved on to the end of the log chunk (container) that frame ``b - 1`` lies in, when
+    that adds at most ``size`` frames: two jobs then do not both read (and decompress) one chunk."""
+    if b >= len(entries) or b <= a:
+        return b
+    last = place.get((entries[b - 1][2], entries[b - 1][3]))
+    end = b
+    while end < len(entries) and end - b < size and place.get((entries[end][2], entries[end][3])) == last:
+        end += 1
+    if end < len(entries) and place.get((entries[end][2], entries[end][3])) == last:
+        return b  # the chunk goes on further: cut where asked
+    while end < len(entries) and entries[end][0] == entries[end - 1][0]:
+        end += 1
+    return end
 
 
 def _scorer_for(config: ScoreConfig) -> Scorer:

@@ -27,6 +27,7 @@ import copy
 import heapq
 import os
 import struct
+from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import IO, Any
@@ -68,7 +69,12 @@ from memlog.io.mcap.summary import read_summary
 from memlog.io.records import Attachment, ChannelInfo, RawMessage, ReadReport, SchemaInfo
 from memlog.io.types import LogInfo
 
-__all__ = ["McapLog"]
+__all__ = ["McapLog", "CHUNK_CACHE_BYTES"]
+
+#: Message bytes of the chunks a reader keeps after reading them (the last ones read), so that a
+#: pass asking for a few frames at a time (the staged detector, one segment after the other) reads
+#: each chunk once. A larger chunk is not kept.
+CHUNK_CACHE_BYTES = 32 << 20
 
 
 @dataclass
@@ -89,6 +95,11 @@ class _Learned:
     crcs: list[bool] = field(default_factory=list)  # per chunk the scan read: was its CRC checked
     report: ReadReport | None = None  # what opening found (copied into every reader's report)
 
+    @property
+    def scanned(self) -> bool:
+        """Whether the data was scanned to learn this (kept on disk for other processes)."""
+        return self.chunks is not None
+
     def close(self) -> None:
         pass
 
@@ -107,6 +118,10 @@ class McapLog(LogReader):
         except OSError as exc:
             raise LogReadError(f"{self.path}: cannot open: {exc.strerror}") from exc
         self._chunks_crc: list[bool] = []  # per chunk read: was its CRC checked
+        # the chunks read last (offset -> messages; None: damaged), so that passes asking for a few
+        # frames at a time read each chunk once as long as they move forward (bounded: CHUNK_CACHE_BYTES)
+        self._recent: OrderedDict[int, list[tuple[int, Message]] | None] = OrderedDict()
+        self._recent_bytes: dict[int, int] = {}
         self._key: Any = None
         try:
             if self._fh.read(len(MAGIC)) != MAGIC:
@@ -302,6 +317,8 @@ class McapLog(LogReader):
 
     def close(self) -> None:
         self._fh.close()
+        self._recent.clear()
+        self._recent_bytes.clear()
         if self._key is not None:
             release(self._key)
             self._key = None
@@ -426,7 +443,22 @@ class McapLog(LogReader):
 
     def _read_chunk(self, ref: ChunkRef) -> list[tuple[int, Message]] | None:
         """Messages of the chunk (or message record) at ``ref.offset``, each with its offset in the
-        chunk (schemas and channels registered); None when it is damaged (reported, once)."""
+        chunk (schemas and channels registered); None when it is damaged (reported, once). The
+        last chunks read (up to :data:`CHUNK_CACHE_BYTES` of messages) are kept and not read again."""
+        if ref.offset in self._recent:
+            self._recent.move_to_end(ref.offset)
+            return self._recent[ref.offset]
+        got = self._read_chunk_now(ref)
+        size = sum(len(m.data) + 64 for _, m in got or ())
+        if size <= CHUNK_CACHE_BYTES:
+            self._recent[ref.offset] = got
+            self._recent_bytes[ref.offset] = size
+            while sum(self._recent_bytes.values()) > CHUNK_CACHE_BYTES:
+                old, _ = self._recent.popitem(last=False)
+                del self._recent_bytes[old]
+        return got
+
+    def _read_chunk_now(self, ref: ChunkRef) -> list[tuple[int, Message]] | None:
         pos = ref.offset
         try:
             op, n = self._head(pos)

@@ -339,6 +339,11 @@ class _Learned:
     tables: dict[str, FrameTable] = field(default_factory=dict)
     report: ReadReport | None = None
 
+    @property
+    def scanned(self) -> bool:
+        """Whether the records were scanned to learn this (kept on disk for other processes)."""
+        return not self.trusted
+
     def close(self) -> None:
         pass
 
