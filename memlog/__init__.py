@@ -40,7 +40,19 @@ if TYPE_CHECKING:
     from memlog.steps.score import score as score
 
 
+def _started_as_the_command() -> bool:
+    """Whether this process is the ``memlog`` command (``memlog ...`` or ``python -m memlog``): it
+    reads the environment itself and calls a bad value a usage error, so the import says nothing."""
+    import sys
+
+    orig = list(getattr(sys, "orig_argv", []))  # (the interpreter's own command line: python -m memlog ...)
+    as_module = any(a == "-m" and b in ("memlog", "memlog.cli.app") for a, b in zip(orig, orig[1:]))
+    return as_module or os.path.basename(sys.argv[0] if sys.argv else "") == "memlog"
+
+
 def _bad_setting(exc: _MemlogError) -> None:
+    if _started_as_the_command():
+        return
     from memlog.progress import warning
 
     warning(f"{exc}; the default is used")

@@ -90,7 +90,7 @@ def test_localize_r1_equals_evaluate_r1(stromovka: dict[str, Path]) -> None:
     out = stromovka["dir"] / "eval"
     out.mkdir()
     assert main(["-q", "evaluate", "--reference", str(stromovka["autumn"]), "--query", str(stromovka["winter"]),
-                 "--truth", str(stromovka["truth"]), "-o", str(out), "--seeds", "2", "--no-report"]) == 0
+                 "--truth", str(stromovka["truth"]), "-o", str(out), "--seeds", "2"]) == 0
     res = json.loads((out / "results.json").read_text())
     # evaluate's memorable map is the map `memlog map` writes with the same settings, matched by the
     # one matcher on its Parquet: the same kept frames and the same R@1

@@ -75,6 +75,7 @@ def test_from_environment_does_not_read_os_environ(monkeypatch: pytest.MonkeyPat
     ("MEMLOG_MAX_PIXELS", "-5", ConfigError),
     ("MEMLOG_MAX_PIXELS", "1e6", ConfigError),
     ("MEMLOG_ENTROPY_KERNEL", "fortran", ScoringError),
+    ("MEMLOG_DEVICE", "gpu", ConfigError),
 ])
 def test_a_bad_value_names_its_variable(name: str, value: str, error: type[MemlogError]) -> None:
     with pytest.raises(error, match=name):
@@ -104,6 +105,10 @@ def test_the_cli_reads_the_environment(tmp_path: Path) -> None:
     args = [sys.executable, "-m", "memlog", "convert", str(tmp_path / "missing.mcap"), "-o", str(tmp_path / "o.mcap")]
     r = subprocess.run(args, env={**env, "MEMLOG_MAX_PIXELS": "lots"}, capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 2 and "MEMLOG_MAX_PIXELS must be an integer >= 1, got 'lots'" in r.stderr, r.stderr
+    assert r.stderr.count("MEMLOG_MAX_PIXELS") == 1, r.stderr  # said once, by the command (not also by the import)
+    r = subprocess.run([sys.executable, "-c", "import memlog"], env={**env, "MEMLOG_DEVICE": "gpu"},
+                       capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0 and "MEMLOG_DEVICE must be auto, cpu or cuda, got 'gpu'; the default is used" in r.stderr
     code = "import memlog.runtime as r; print(r.current().max_pixels, r.current().entropy_kernel)"
     r = subprocess.run([sys.executable, "-c", code], env={**env, "MEMLOG_MAX_PIXELS": "321",
                                                           "MEMLOG_ENTROPY_KERNEL": "numpy"},
@@ -262,3 +267,24 @@ def test_the_opened_helpers_use_the_context_cache(tmp_path: Path) -> None:
         _opened.clear_cache()
         assert entry.closed and key not in rt.opened
     assert _opened.scans(str(log)) == 0  # another context's counts
+
+
+def test_a_reader_releases_its_entry_where_it_learned_it(tmp_path: Path) -> None:
+    """A reader opened under one runtime context and closed under another gives its entry back to the
+    cache it came from (it is then unused there, and dropped by clear())."""
+    from memlog.io.open import open_log
+    from tests.conftest import FIXTURES
+
+    log = tmp_path / "cut.mcap"
+    data = (FIXTURES / "demo.mcap").read_bytes()
+    log.write_bytes(data[: len(data) * 3 // 4])
+    inner = Runtime(cache_dir=str(tmp_path / "cache"))
+    with use(inner):
+        reader = open_log(log)
+        reader.quiet_warnings()
+    key = reader._key
+    assert inner.opened.users(key) == 1
+    reader.close()  # (the package's context in force now)
+    assert inner.opened.users(key) == 0
+    inner.opened.clear()
+    assert key not in inner.opened

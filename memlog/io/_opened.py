@@ -50,7 +50,7 @@ from typing import Any, Protocol, TypeVar
 from memlog._version import __version__
 from memlog.runtime import DEFAULT_OPENED_LOGS, current
 
-__all__ = ["Learned", "learned", "release", "clear_cache", "file_key", "scans", "MAX_ENTRIES", "MAX_SCANS",
+__all__ = ["Learned", "learned", "release", "holder", "clear_cache", "file_key", "scans", "MAX_ENTRIES", "MAX_SCANS",
            "scan_record_path"]
 
 #: Logs whose structure is kept when no reader uses them.
@@ -169,9 +169,16 @@ def _remember(key: Hashable, entry: Any) -> None:
         _log.debug("scan record %s not written: %s", path, exc)
 
 
-def release(key: Hashable) -> None:
-    """A reader is done with the entry of ``key``."""
-    current().opened.release(key)
+def release(key: Hashable, holder: Any = None) -> None:
+    """A reader is done with the entry of ``key``; ``holder``: the cache it learned it from
+    (:func:`holder`, taken when it opened), else the runtime context's in force now."""
+    (holder if holder is not None else current().opened).release(key)
+
+
+def holder() -> Any:
+    """The cache :func:`learned` uses now (a reader keeps it, to release its entry there even when
+    another runtime context is in force when it closes)."""
+    return current().opened
 
 
 def clear_cache() -> None:

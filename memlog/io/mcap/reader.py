@@ -40,7 +40,7 @@ import numpy as np
 
 from memlog.errors import LogReadError
 from memlog.io._damage import MAX_CHUNK_BYTES, check_regular_file, damage_place
-from memlog.io._opened import counted_scan, file_key, learned, release
+from memlog.io._opened import counted_scan, file_key, holder, learned, release
 from memlog.io.base import LogReader
 from memlog.io.camera import camera_kind
 from memlog.io.frame_table import FrameTable
@@ -127,6 +127,7 @@ class McapLog(LogReader):
             if self._fh.read(len(MAGIC)) != MAGIC:
                 raise LogReadError(f"{self.path}: not an MCAP file (bad magic)")
             key = file_key("mcap", self.path, validate_crcs)
+            self._holder = holder()
             self._l, new = learned(key, self._learn)
             self._key = key
         except BaseException:
@@ -320,7 +321,7 @@ class McapLog(LogReader):
         self._recent.clear()
         self._recent_bytes.clear()
         if self._key is not None:
-            release(self._key)
+            release(self._key, self._holder)
             self._key = None
 
     def _add_channel(self, c: Channel) -> ChannelInfo:

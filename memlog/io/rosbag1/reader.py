@@ -26,7 +26,7 @@ from typing import IO, Any
 import numpy as np
 
 from memlog.io._damage import check_regular_file, damage_place, decompress, merge_groups
-from memlog.io._opened import counted_scan, file_key, learned, release
+from memlog.io._opened import counted_scan, file_key, holder, learned, release
 from memlog.io._rosbags import msgdef_text
 from memlog.io.base import LogReader
 from memlog.io.camera import camera_kind
@@ -360,6 +360,7 @@ class Ros1BagLog(LogReader):
         self._scan = _Ros1Scanner(self.path, self, size)
         self._key: Any = None
         key = file_key("ros1bag", self.path)
+        self._holder = holder()
         self._l, new = learned(key, self._learn)
         self._key = key
         self._said = self._l.said
@@ -507,7 +508,7 @@ class Ros1BagLog(LogReader):
 
     def close(self) -> None:
         if self._key is not None:
-            release(self._key)
+            release(self._key, self._holder)
             self._key = None
 
     def channels(self) -> list[ChannelInfo]:

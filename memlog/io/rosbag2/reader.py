@@ -39,7 +39,7 @@ import numpy as np
 
 from memlog.errors import LogReadError
 from memlog.io._damage import check_regular_file
-from memlog.io._opened import file_key, learned, release
+from memlog.io._opened import file_key, holder, learned, release
 from memlog.io.base import LogReader
 from memlog.io.frame_table import FrameTable
 from memlog.io.records import ChannelInfo, RawMessage, ReadReport, SchemaInfo
@@ -88,6 +88,7 @@ class Ros2BagLog(LogReader):
         self._decoders: dict[int, Any] = {}  # channel id -> deserializer (header stamps of rows without a time)
         key = file_key("ros2bag", self.path)
         try:
+            self._holder = holder()
             self._l, new = learned(key, self._learn)
             self._key = key
             self._said = self._l.said
@@ -265,7 +266,7 @@ class Ros2BagLog(LogReader):
             sub.close()
         self._mcaps = []
         if self._key is not None:
-            release(self._key)
+            release(self._key, self._holder)
             self._key = None
 
     # -- listing -------------------------------------------------------------------
