@@ -82,11 +82,22 @@ def test_a_broken_or_foreign_scan_record_is_not_used(tmp_path: Path) -> None:
         record = _opened.scan_record_path(key)
         assert record.is_file()
 
+        from memlog.io.atomic import write_bytes_atomic
+
         class Evil:
             def __reduce__(self):  # type: ignore[no-untyped-def]
                 return (os.system, ("echo owned > " + str(tmp_path / "owned"),))
 
-        for content in (b"not a pickle", pickle.dumps((1, "0.0.0", key, None)), pickle.dumps(Evil())):
+        class EvilNumpy:
+            def __reduce__(self):  # type: ignore[no-untyped-def]
+                return (np.savetxt, (str(tmp_path / "owned"), np.zeros(1)))
+
+        class EvilMemlog:  # a function of memlog's own is no class: refused too
+            def __reduce__(self):  # type: ignore[no-untyped-def]
+                return (write_bytes_atomic, (str(tmp_path / "owned"), b"x"))
+
+        for content in (b"not a pickle", pickle.dumps((1, "0.0.0", key, None)), pickle.dumps(Evil()),
+                        pickle.dumps(EvilNumpy()), pickle.dumps(EvilMemlog())):
             record.write_bytes(content)
             _opened.clear_cache()
             before = _opened.scans(str(log))

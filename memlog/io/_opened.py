@@ -116,17 +116,26 @@ def scan_record_path(key: Hashable) -> Path:
 
 
 class _PlainUnpickler(pickle.Unpickler):
-    """Loads only the plain types a scan record holds: builtins, memlog's and mcap's records,
-    numpy arrays."""
+    """Loads only the plain types a scan record holds: builtin containers and numbers, numpy arrays,
+    and memlog's and mcap's record classes (classes only: no function of theirs is called)."""
 
-    _MODULES = ("builtins", "collections", "copyreg", "numpy", "memlog.", "mcap.")
+    _BUILTINS = frozenset({"set", "frozenset", "dict", "list", "tuple", "bytes", "bytearray", "int", "float",
+                           "complex", "str", "bool", "slice", "range"})
+    _NUMPY = frozenset({"_reconstruct", "ndarray", "dtype", "_frombuffer", "scalar"})
 
     def find_class(self, module: str, name: str) -> Any:
-        if module == "builtins" and name in ("eval", "exec", "compile", "open", "__import__", "getattr"):
+        top = module.split(".")[0]
+        allowed = ((module == "builtins" and name in self._BUILTINS)
+                   or (module == "collections" and name in ("OrderedDict", "defaultdict"))
+                   or (module == "copyreg" and name == "_reconstructor")
+                   or (top == "numpy" and name in self._NUMPY)
+                   or top in ("memlog", "mcap"))
+        if not allowed:
             raise pickle.UnpicklingError(f"{module}.{name} is not allowed in a scan record")
-        if not any(module == m.rstrip(".") or module.startswith(m) for m in self._MODULES):
-            raise pickle.UnpicklingError(f"{module}.{name} is not allowed in a scan record")
-        return super().find_class(module, name)
+        found = super().find_class(module, name)
+        if top in ("memlog", "mcap") and not isinstance(found, type):
+            raise pickle.UnpicklingError(f"{module}.{name} is not a class: not allowed in a scan record")
+        return found
 
 
 def _recall(key: Hashable) -> Any:
@@ -160,8 +169,11 @@ def _remember(key: Hashable, entry: Any) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
+        try:
+            tmp.write_bytes(data)
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
         old = sorted(path.parent.glob("*.pickle"), key=lambda p: p.stat().st_mtime)
         for p in old[: max(0, len(old) - MAX_SCANS)]:
             p.unlink(missing_ok=True)
