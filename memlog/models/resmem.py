@@ -149,9 +149,27 @@ def crop_weights(s: npt.NDArray[Any] | None = None) -> F64:
         col = a.sum(axis=0)
         return np.asarray(np.outer(col, col) / (FRAME * FRAME), dtype=np.float64)
     # einsum's own loops, not BLAS: the same sums in the same order whatever BLAS's thread count
-    # (workers run it on one thread), so a worker's weights are the driver's to the last bit
-    s_a = np.einsum("rc,cj->rj", np.asarray(check_static_map(s), dtype=np.float64), a)
-    return np.asarray(np.einsum("ri,rj->ij", a, s_a) / (FRAME * FRAME), dtype=np.float64)
+    # (workers run it on one thread), so a worker's weights are the driver's to the last bit; each
+    # column of A only over the rows where it is not zero (the zeros add nothing: the same sums)
+    sm = np.asarray(check_static_map(s), dtype=np.float64)
+    s_a = np.empty((sm.shape[0], GRID))
+    for j, (lo, hi) in enumerate(_spans()):
+        s_a[:, j] = np.einsum("rc,c->r", sm[:, lo:hi], a[lo:hi, j])
+    w = np.empty((GRID, GRID))
+    for i, (lo, hi) in enumerate(_spans()):
+        w[i] = np.einsum("r,rj->j", a[lo:hi, i], s_a[lo:hi])
+    return np.asarray(w / (FRAME * FRAME), dtype=np.float64)
+
+
+@lru_cache(maxsize=1)
+def _spans() -> tuple[tuple[int, int], ...]:
+    """Per column of :func:`interp_matrix`, the rows [lo, hi) outside which it is zero."""
+    a = interp_matrix()
+    out = []
+    for j in range(a.shape[1]):
+        nz = np.flatnonzero(a[:, j])
+        out.append((int(nz.min()), int(nz.max()) + 1))
+    return tuple(out)
 
 
 def run_crops(session: Any, crops: F32) -> F32:

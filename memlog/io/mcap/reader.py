@@ -74,7 +74,7 @@ __all__ = ["McapLog", "CHUNK_CACHE_BYTES"]
 #: Message bytes of the chunks a reader keeps after reading them (the last ones read), so that a
 #: pass asking for a few frames at a time (the staged detector, one segment after the other) reads
 #: each chunk once. A larger chunk is not kept.
-CHUNK_CACHE_BYTES = 32 << 20
+CHUNK_CACHE_BYTES = 8 << 20
 
 
 @dataclass
