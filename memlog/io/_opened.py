@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from memlog._version import __version__
-from memlog.runtime import DEFAULT_OPENED_LOGS, current
+from memlog.runtime import DEFAULT_OPENED_LOGS, OpenedLogs, current
 
 __all__ = ["Learned", "learned", "release", "holder", "clear_cache", "file_key", "scans", "MAX_ENTRIES", "MAX_SCANS",
            "scan_record_path"]
@@ -181,13 +181,13 @@ def _remember(key: Hashable, entry: Any) -> None:
         _log.debug("scan record %s not written: %s", path, exc)
 
 
-def release(key: Hashable, holder: Any = None) -> None:
-    """A reader is done with the entry of ``key``; ``holder``: the cache it learned it from
+def release(key: Hashable, cache: OpenedLogs | None = None) -> None:
+    """A reader is done with the entry of ``key``; ``cache``: the one it learned it from
     (:func:`holder`, taken when it opened), else the runtime context's in force now."""
-    (holder if holder is not None else current().opened).release(key)
+    (cache if cache is not None else current().opened).release(key)
 
 
-def holder() -> Any:
+def holder() -> OpenedLogs:
     """The cache :func:`learned` uses now (a reader keeps it, to release its entry there even when
     another runtime context is in force when it closes)."""
     return current().opened

@@ -58,7 +58,7 @@ from memlog.steps.map_log import Looks, MapPlan, MapResult, write_map_log
 from memlog.steps.map_scoring import (CheapFrame, Detected, DetectJob, DetectRule, SegmentJob, cheap_frames,
                                       choose_chunk, detect_chunk, detect_segments, staged_record)
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
-from memlog.steps.score import scored_frames
+from memlog.steps.score import end_at_container, scored_frames
 
 __all__ = ["make_map", "MapConfig", "MapResult", "Looks", "score_table", "EmptyMapError", "collect_scores", "staged_scores",
            "staged_scores_and_looks", "staged_stageable"]
@@ -515,23 +515,19 @@ def _detect_staged(log: str, score_cfg: ScoreConfig, window: FrameWindow, ex: Ex
 
 def _segment_groups(djobs: list[tuple[list[CheapFrame], list[int], DetectJob]], group: int,
                     containers: Mapping[str, np.ndarray]) -> list[list[tuple[list[CheapFrame], list[int], DetectJob]]]:
-    """``djobs`` in groups of about ``group`` segments, in order; a group goes on (by at most
-    ``group`` more) while the next segment starts in the log chunk the group ends in."""
+    """``djobs`` in groups of about ``group`` segments, in order, each ending where a log chunk
+    ends when that is near (:func:`~memlog.steps.score.end_at_container`)."""
 
-    def place(job: DetectJob, k: int) -> int | None:
+    def place(k: int, at: int) -> int | None:
+        job = djobs[k][2]
         c = containers.get(job.topic)
-        return None if c is None or not job.indices else int(c[job.indices[k]])
+        return None if c is None or not job.indices else int(c[job.indices[at]])
 
     out = []
     i = 0
     while i < len(djobs):
-        j = min(i + group, len(djobs))
-        end = j
-        while end < len(djobs) and end - j < group and djobs[end][2].topic == djobs[end - 1][2].topic \
-                and place(djobs[end][2], 0) is not None and place(djobs[end][2], 0) == place(djobs[end - 1][2], -1):
-            end += 1
-        if end < len(djobs) and end - j >= group:
-            end = j  # the chunk goes on further: cut where asked
+        end = end_at_container(lambda k: place(k, 0), lambda k: place(k, -1), len(djobs), min(i + group, len(djobs)),
+                               group)
         out.append(djobs[i:end])
         i = end
     return out

@@ -23,7 +23,7 @@ import json
 import os
 import platform
 import time
-from collections.abc import Container, Hashable, Iterator, Mapping
+from collections.abc import Callable, Container, Hashable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -183,24 +183,27 @@ def plan_chunks(reader: LogReader, window: FrameWindow, size: int) -> list[Chunk
 
     topics = sorted(set(reader.check_camera_topics(window.topics)))
     entries: list[tuple[int, int, str, int]] = []
-    place: dict[tuple[str, int], int] = {}  # (topic, frame) -> the container (log chunk) it lies in
+    containers = {}  # topic -> the container (log chunk) of each frame
     for k, t in enumerate(topics):
         table = reader.frame_table(t)
         first, last = table.window(window.start_ns, window.end_ns)
         idx = np.arange(first, last)
         idx = idx[idx % window.stride == 0]
         entries.extend((int(table.times[i]), k, t, int(i)) for i in idx)
-        containers = table.entries()[1]
-        place.update(((t, int(i)), int(containers[i])) for i in idx)
+        containers[t] = table.entries()[1]
     entries.sort()
+
+    def place(k: int) -> int:
+        return int(containers[entries[k][2]][entries[k][3]])
+
     chunks = []
     last_of: dict[str, tuple[int, int]] = {}
     a = 0
     while a < len(entries):
         b = min(a + size, len(entries))
+        b = end_at_container(place, place, len(entries), b, size)
         while b < len(entries) and entries[b][0] == entries[b - 1][0]:
             b += 1  # frames of one log time stay in one chunk (their order is the reader's)
-        b = _to_container_end(entries, place, a, b, size)
         part = entries[a:b]
         a = b
         ind: dict[str, set[int]] = {}
@@ -213,21 +216,19 @@ def plan_chunks(reader: LogReader, window: FrameWindow, size: int) -> list[Chunk
     return chunks
 
 
-def _to_container_end(entries: list[tuple[int, int, str, int]], place: dict[tuple[str, int], int], a: int, b: int,
-                      size: int) -> int:
-    """``b`` moved on to the end of the log chunk (container) that frame ``b - 1`` lies in, when
-    that adds at most ``size`` frames: two jobs then do not both read (and decompress) one chunk."""
-    if b >= len(entries) or b <= a:
+def end_at_container(first: Callable[[int], int | None], last: Callable[[int], int | None], n: int, b: int,
+                     size: int) -> int:
+    """Where a job that was to end before item ``b`` of ``n`` (frames, segments) ends, so that the
+    next job does not read (and decompress) the log chunk it ends in again: ``b`` moved on while
+    item ``b`` starts (``first``) in the container item ``b - 1`` ends in (``last``), by at most
+    ``size`` items; ``b`` itself when that container goes on further, or is not known."""
+    if not 0 < b < n:
         return b
-    last = place.get((entries[b - 1][2], entries[b - 1][3]))
+    at = last(b - 1)
     end = b
-    while end < len(entries) and end - b < size and place.get((entries[end][2], entries[end][3])) == last:
+    while at is not None and end < n and end - b < size and first(end) == at:
         end += 1
-    if end < len(entries) and place.get((entries[end][2], entries[end][3])) == last:
-        return b  # the chunk goes on further: cut where asked
-    while end < len(entries) and entries[end][0] == entries[end - 1][0]:
-        end += 1
-    return end
+    return b if end < n and first(end) == at else end
 
 
 def _scorer_for(config: ScoreConfig) -> Scorer:

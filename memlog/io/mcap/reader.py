@@ -120,8 +120,8 @@ class McapLog(LogReader):
         self._chunks_crc: list[bool] = []  # per chunk read: was its CRC checked
         # the chunks read last (offset -> messages; None: damaged), so that passes asking for a few
         # frames at a time read each chunk once as long as they move forward (bounded: CHUNK_CACHE_BYTES)
-        self._recent: OrderedDict[int, list[tuple[int, Message]] | None] = OrderedDict()
-        self._recent_bytes: dict[int, int] = {}
+        self._recent: OrderedDict[int, tuple[list[tuple[int, Message]] | None, int]] = OrderedDict()  # with bytes
+        self._recent_bytes = 0
         self._key: Any = None
         try:
             if self._fh.read(len(MAGIC)) != MAGIC:
@@ -319,7 +319,7 @@ class McapLog(LogReader):
     def close(self) -> None:
         self._fh.close()
         self._recent.clear()
-        self._recent_bytes.clear()
+        self._recent_bytes = 0
         if self._key is not None:
             release(self._key, self._holder)
             self._key = None
@@ -448,15 +448,14 @@ class McapLog(LogReader):
         last chunks read (up to :data:`CHUNK_CACHE_BYTES` of messages) are kept and not read again."""
         if ref.offset in self._recent:
             self._recent.move_to_end(ref.offset)
-            return self._recent[ref.offset]
+            return self._recent[ref.offset][0]
         got = self._read_chunk_now(ref)
         size = sum(len(m.data) + 64 for _, m in got or ())
         if size <= CHUNK_CACHE_BYTES:
-            self._recent[ref.offset] = got
-            self._recent_bytes[ref.offset] = size
-            while sum(self._recent_bytes.values()) > CHUNK_CACHE_BYTES:
-                old, _ = self._recent.popitem(last=False)
-                del self._recent_bytes[old]
+            self._recent[ref.offset] = (got, size)
+            self._recent_bytes += size
+            while self._recent_bytes > CHUNK_CACHE_BYTES:
+                self._recent_bytes -= self._recent.popitem(last=False)[1][1]
         return got
 
     def _read_chunk_now(self, ref: ChunkRef) -> list[tuple[int, Message]] | None:
