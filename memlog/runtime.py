@@ -34,7 +34,7 @@ from typing import Any, Literal, Protocol, TypeVar, cast
 from memlog.errors import ConfigError, MemlogError, ScoringError
 
 __all__ = ["Runtime", "OpenedLogs", "ModelCache", "current", "install", "use", "DEFAULT_MAX_PIXELS",
-           "ENTROPY_KERNELS", "DEVICES"]
+           "ENTROPY_KERNELS", "DEVICES", "DEFAULT_SPOOL_BYTES"]
 
 #: Largest image (width x height) memlog decodes unless told otherwise (``--max-pixels``,
 #: ``MEMLOG_MAX_PIXELS``): 100 MP is ten times a 4K frame.
@@ -45,6 +45,8 @@ ENTROPY_KERNELS: tuple[str, ...] = ("auto", "c", "numpy")
 DEFAULT_MODEL_CACHE_SIZE = 8
 #: Logs whose structure is kept when no reader uses them.
 DEFAULT_OPENED_LOGS = 8
+#: Bytes of one log's chunks a process keeps in a job's spool (:mod:`memlog.io.spool`) by default.
+DEFAULT_SPOOL_BYTES = 8 << 30
 #: Where models may run (``auto``: a CUDA GPU when ONNX Runtime offers one).
 DEVICES: tuple[str, ...] = ("auto", "cpu", "cuda")
 
@@ -223,9 +225,11 @@ class Runtime:
     debug: bool = False
     ray_address: str | None = None
     device: str = "auto"
+    spool_bytes: int = DEFAULT_SPOOL_BYTES
     opened: OpenedLogs = field(default_factory=OpenedLogs, compare=False, repr=False)
     models: ModelCache = field(default_factory=ModelCache, compare=False, repr=False)
     indexes: ModelCache = field(default_factory=lambda: ModelCache(64), compare=False, repr=False)
+    spools: dict[str, int] = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         mp = self.max_pixels
@@ -236,6 +240,9 @@ class Runtime:
                                f"got {self.entropy_kernel!r}")
         if self.device not in DEVICES:
             raise ConfigError(f"the device must be one of {', '.join(DEVICES)}, got {self.device!r}")
+        sb = self.spool_bytes
+        if isinstance(sb, bool) or not isinstance(sb, int) or sb < 0:
+            raise ConfigError(f"the spool size must be an integer >= 0 (bytes), got {sb!r}")
         size = self.model_cache_size
         if isinstance(size, bool) or not isinstance(size, int) or size < 1:
             raise ConfigError(f"the model cache size must be an integer >= 1, got {size!r}")
@@ -270,7 +277,7 @@ class Runtime:
         """The Runtime the variables of ``env`` ask for (the caller passes the environment):
         ``MEMLOG_MAX_PIXELS``, ``MEMLOG_ENTROPY_KERNEL`` (c, numpy, auto), ``MEMLOG_DEBUG`` (any
         non-empty value), ``MEMLOG_CACHE_DIR``, else ``XDG_CACHE_HOME``/memlog, and
-        ``RAY_ADDRESS``; an unset or empty variable means the default. A bad value raises a
+        ``RAY_ADDRESS``, ``MEMLOG_SPOOL_BYTES``; an unset or empty variable means the default. A bad value raises a
         :class:`~memlog.errors.ConfigError` (:class:`~memlog.errors.ScoringError` for the kernel)
         naming the variable; with ``on_error``, the error is handed to it and the default used."""
         kw: dict[str, Any] = {}
@@ -332,6 +339,19 @@ def _device(env: Mapping[str, str]) -> dict[str, Any]:
     return {"device": raw} if raw else {}
 
 
+def _spool_bytes(env: Mapping[str, str]) -> dict[str, Any]:
+    raw = _text(env, "MEMLOG_SPOOL_BYTES")
+    if not raw:
+        return {}
+    try:
+        n = int(raw)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise ConfigError(f"MEMLOG_SPOOL_BYTES must be an integer >= 0 (bytes; 0 turns the spool off), got {raw!r}")
+    return {"spool_bytes": n}
+
+
 def _ray_address(env: Mapping[str, str]) -> dict[str, Any]:
     address = env.get("RAY_ADDRESS")
     return {"ray_address": address} if address else {}
@@ -339,7 +359,7 @@ def _ray_address(env: Mapping[str, str]) -> dict[str, Any]:
 
 #: What :meth:`Runtime.from_environment` reads, one variable (or two, for the cache) each.
 _PARSERS: tuple[Callable[[Mapping[str, str]], dict[str, Any]], ...] = (
-    _max_pixels, _entropy_kernel, _cache_dir, _debug, _ray_address, _device)
+    _max_pixels, _entropy_kernel, _cache_dir, _debug, _ray_address, _device, _spool_bytes)
 
 
 # --------------------------------------------------------------------------- the one in force

@@ -108,7 +108,8 @@ def test_a_broken_or_foreign_scan_record_is_not_used(tmp_path: Path) -> None:
 
 def test_the_staged_detector_reads_each_chunk_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`memlog map` on one process: pass 1, the staged detector (a few frames of each segment at a
-    time) and the map writer each read a chunk of the log at most once."""
+    time) and the map writer each read a chunk of the log at most once, also without the job's
+    spool (tests/test_spool.py: with it, once in all)."""
     from memlog.io.mcap import reader as mcap_reader
     from memlog.steps.map import make_map
     from tests.stand_in import use_stand_in
@@ -123,7 +124,8 @@ def test_the_staged_detector_reads_each_chunk_once(tmp_path: Path, monkeypatch: 
         return real(self, ref)
 
     monkeypatch.setattr(mcap_reader.McapLog, "_read_chunk_now", counting)
-    make_map(log, tmp_path / "map.mcap")
+    with use(current().replace(spool_bytes=0)):  # (the spool off: each pass reads the log)
+        make_map(log, tmp_path / "map.mcap")
     assert reads and max(reads.values()) <= 3, reads  # three passes; the detector's segments share chunks
 
 

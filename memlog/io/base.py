@@ -18,6 +18,7 @@ from memlog.io.camera import CAMERA_TYPES, camera_kind, extract_image
 from memlog.io.decoders import UnsupportedEncoding, make_deserializer
 from memlog.io.frame import Frame
 from memlog.io.frame_table import FrameTable
+from memlog.io.spool import ChunkSpool, spool_of
 from memlog.io.records import Attachment, ChannelInfo, RawMessage, ReadReport
 from memlog.io.types import ImagePayload, LogInfo, TopicInfo
 from memlog.io.video import VIDEO_CODECS, VideoDecoder, codec_of, keyframe_before, payload_is_keyframe
@@ -106,6 +107,14 @@ class LogReader(ABC):
         self.on_warning: Callable[[str], None] = _warn_log
         self._said: set[str] = set()  # readers of the same file share it (memlog.io._opened)
         self._pending: list[str] = []  # what opening found that nobody has said yet (a quiet reader learned it)
+        self._spool: ChunkSpool | None | bool = False  # (False: not looked up yet)
+
+    def spool(self) -> ChunkSpool | None:
+        """This log's spool while a job of it runs (:mod:`memlog.io.spool`: chunks read once per
+        job); looked up once per reader."""
+        if self._spool is False:
+            self._spool = spool_of(self.path)
+        return self._spool if isinstance(self._spool, ChunkSpool) else None
 
     # -- to implement -------------------------------------------------------------
     @abstractmethod

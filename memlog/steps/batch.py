@@ -44,6 +44,7 @@ from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow
 from memlog.io.identity import log_identity, log_names
 from memlog.io.open import open_log
+from memlog.io import spool
 from memlog.io.records import ReadReport
 from memlog.models.runtime import choose_providers
 from memlog.outputs.results import write_results
@@ -538,9 +539,10 @@ def _run_one(r: LogResult, cfg: BatchConfig, window: FrameWindow, settings: str,
     ex = executors.get()
     before = executors.restarts()
     try:
-        run = score(r.log, r.outputs["scored"], cfg.map.score, window, executor=ex, chunk_frames=cfg.chunk_frames)
-        r.frames = sum(t.frames_seen for t in run.topics.values())
-        res = make_map(r.log, r.outputs["map"], cfg.map, executor=ex)
+        with spool.job(r.log):  # (score's reads serve map's passes: memlog.io.spool)
+            run = score(r.log, r.outputs["scored"], cfg.map.score, window, executor=ex, chunk_frames=cfg.chunk_frames)
+            r.frames = sum(t.frames_seen for t in run.topics.values())
+            res = make_map(r.log, r.outputs["map"], cfg.map, executor=ex)
         r.kept = res.frames_kept
         r.notes = [f"{t}: {short}" for t, sel in res.selections.items() if (short := sel.shortfall())]
         damage = run.report.damage()

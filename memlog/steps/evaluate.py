@@ -57,6 +57,7 @@ from memlog.io.atomic import check_output
 from memlog.io.base import FrameWindow
 from memlog.io.identity import log_identity, same_identity
 from memlog.io.open import open_log
+from memlog.io import spool
 from memlog.io.records import ReadReport
 from memlog.outputs.annotated import read_scores, run_config, run_input_identity
 from memlog.outputs.descriptor_table import read_cached, read_descriptors, write_descriptors
@@ -378,6 +379,12 @@ def evaluate(
     """Run the evaluation (see module doc); returns what is written to ``results.json``."""
     t_start = time.perf_counter()
     run = _checked(str(reference), str(query), out_dir, config or EvaluateConfig(), truth)
+    with spool.job(run.reference), spool.job(run.query):  # (each chunk read from a log once: memlog.io.spool)
+        return _evaluated(run, t_start)
+
+
+def _evaluated(run: _Run, t_start: float) -> EvaluateResult:
+    """:func:`evaluate` after its checks."""
     cfg = run.cfg
     with open_log(run.reference) as reader:
         choices = [resolve_descriptor(name, reader, run.ref_topic) for name in cfg.descriptors]

@@ -41,6 +41,7 @@ from memlog.io.base import FrameWindow, LogReader
 from memlog.io.identity import same_identity
 from memlog.io.open import open_log
 from memlog.io.positions import MotionTrack, PositionTrack, read_tracks
+from memlog.io import spool
 from memlog.io.records import ReadReport
 from memlog.models.runtime import choose_providers, on_thread
 from memlog.outputs.annotated import read_scores, run_config, run_input_identity, scores_message
@@ -611,7 +612,7 @@ def make_map(
     t0 = time.perf_counter()
     cfg = config or MapConfig()
     dpath = _check_map_inputs(log, output, cfg, scores, executor)
-    with open_log(log) as reader:
+    with spool.job(log), open_log(log) as reader:  # (each chunk read from the log once: memlog.io.spool)
         cams = reader.check_camera_topics(cfg.topics)
         missing_keep = set(cfg.keep_topics) - set(reader.topics())
         if missing_keep:

@@ -35,6 +35,7 @@ from memlog.io.base import FrameError, FrameWindow, LogReader
 from memlog.io.frame import Frame
 from memlog.io.identity import log_identity
 from memlog.io.open import open_log
+from memlog.io import spool
 from memlog.io.records import ReadReport
 from memlog.models.runtime import choose_providers
 from memlog.outputs.annotated import AnnotatedLogWriter
@@ -343,7 +344,7 @@ def score(
     own = executor is None
     ex = executor or make_executor(workers)
     try:
-        with open_log(log) as reader:
+        with spool.job(log), open_log(log) as reader:  # (each chunk read from the log once: memlog.io.spool)
             topics = reader.check_camera_topics(window.topics)
             sc = None
             if isinstance(ex, InProcess):  # with workers, the models load in the worker processes

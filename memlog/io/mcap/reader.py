@@ -40,7 +40,7 @@ import numpy as np
 
 from memlog.errors import LogReadError
 from memlog.io._damage import MAX_CHUNK_BYTES, check_regular_file, damage_place
-from memlog.io._opened import counted_scan, file_key, holder, learned, release
+from memlog.io._opened import file_key, holder, learned, release
 from memlog.io.base import LogReader
 from memlog.io.camera import camera_kind
 from memlog.io.frame_table import FrameTable
@@ -49,7 +49,6 @@ from memlog.io.mcap.records import (
     KNOWN_OPS,
     MAGIC,
     OP_ATTACHMENT,
-    OP_CHANNEL,
     OP_CHUNK,
     OP_DATA_END,
     OP_FOOTER,
@@ -57,15 +56,16 @@ from memlog.io.mcap.records import (
     OP_MESSAGE,
     OP_MESSAGE_INDEX,
     OP_METADATA,
-    OP_SCHEMA,
     ChunkRef,
     RecordDamage,
-    chunk_records,
-    frame_table_of,
+    chunk_data,
     parse_record,
+    records_of,
     schema_info,
 )
+from memlog.io.mcap.scan import DataScan
 from memlog.io.mcap.summary import read_summary
+from memlog.io.spool import ChunkSpool
 from memlog.io.records import Attachment, ChannelInfo, RawMessage, ReadReport, SchemaInfo
 from memlog.io.types import LogInfo
 
@@ -94,6 +94,7 @@ class _Learned:
     tables: dict[str, FrameTable] = field(default_factory=dict)
     crcs: list[bool] = field(default_factory=list)  # per chunk the scan read: was its CRC checked
     report: ReadReport | None = None  # what opening found (copied into every reader's report)
+    places: dict[int, str] = field(default_factory=dict)  # damage_place() of each damage found
 
     @property
     def scanned(self) -> bool:
@@ -200,7 +201,7 @@ class McapLog(LogReader):
         self.report.index_damaged = True
         reasons: list[str] = []
         if damage is not None:
-            reasons.append(f"the data section is damaged {damage_place(self._fh, damage.pos, self._size)} ({damage.reason})")
+            reasons.append(f"the data section is damaged {self._place(damage.pos)} ({damage.reason})")
         missing = sorted(set(walked) - set(index))
         bogus = sorted(set(index) - set(walked))
         if missing:
@@ -248,73 +249,10 @@ class McapLog(LogReader):
         return found, None, top
 
     def _scan(self, past_damage: list[ChunkRef] | None = None, *, damage_known: bool = False) -> None:
-        """Read the data section once, up to the damage, and learn what the reads need: where
-        every readable chunk and top-level message lies, the channels, the message counts and
-        time ranges, and the frame tables. ``past_damage``: chunks the index knows that the walk
-        did not reach, tried after it."""
-        counted_scan(os.path.realpath(self.path))
-        lrn = self._l
-        refs: list[ChunkRef] = []
-        counts: dict[int, int] = {}
-        entries: dict[str, list[tuple[int, int, int]]] = {}
-
-        def note(ref: ChunkRef, msgs: list[tuple[int, Message]]) -> None:
-            refs.append(ref)
-            for inner, m in msgs:
-                counts[m.channel_id] = counts.get(m.channel_id, 0) + 1
-                r = lrn.ranges.setdefault(m.channel_id, [m.log_time, m.log_time])
-                r[0], r[1] = min(r[0], m.log_time), max(r[1], m.log_time)
-                ch = lrn.channels.get(m.channel_id)
-                if ch is not None and camera_kind(ch.msgtype):
-                    entries.setdefault(ch.topic, []).append((m.log_time, ref.offset, inner))
-
-        walk = self._walk_records({OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK})
-        for pos, op, body in walk:
-            try:
-                if op == OP_SCHEMA:
-                    self._absorb([(0, parse_record(Schema, body, pos))])
-                elif op == OP_CHANNEL:
-                    self._absorb([(0, parse_record(Channel, body, pos))])
-                elif op == OP_MESSAGE:
-                    m = parse_record(Message, body, pos)
-                    note(ChunkRef(pos, m.log_time, m.log_time, 9 + len(body), OP_MESSAGE), [(0, m)])
-                else:
-                    recs, checked = chunk_records(body, pos, self.validate_crcs)
-                    lrn.crcs.append(checked)
-                    msgs = self._absorb(recs)
-                    start, end = struct.unpack_from("<QQ", body, 0)
-                    note(ChunkRef(pos, start, end, 9 + len(body)), msgs)
-            except RecordDamage as exc:
-                self.report.count("skipped_chunks", pos)
-                self.warn(f"{self.path}: {'chunk' if op == OP_CHUNK else 'record'} at byte {pos} is damaged: "
-                          f"{exc.reason}; skipped")
-        damage: RecordDamage | None = self._walk_damage
-        later = [r for r in past_damage or [] if damage is None or r.offset > damage.pos]
-        found_later = 0
-        for ref in later:
-            got = self._read_chunk(ref)
-            if got is not None:
-                found_later += 1
-                note(ref, got)
-        if damage is not None:
-            rep = self.report
-            rep.bytes_read = damage.pos
-            where = damage_place(self._fh, damage.pos, self._size)
-            if found_later:
-                rep.index_damaged = True
-                self.warn(f"{self.path}: the data section is damaged {where} ({damage.reason}); read everything "
-                          f"before it and {found_later} chunk(s) the index knows after it")
-            else:
-                rep.truncated = True
-                if not damage_known or not later:
-                    self.warn(f"{self.path}: log is truncated or damaged {where} ({damage.reason}); read everything "
-                              "before it")
-        lrn.chunks = sorted(refs, key=lambda r: r.offset)
-        lrn.counts = counts
-        for ch in lrn.channels.values():  # camera topics without a readable message have empty tables
-            if camera_kind(ch.msgtype):
-                entries.setdefault(ch.topic, [])
-        lrn.tables = {t: frame_table_of(e) for t, e in entries.items()}
+        """Read the data section once, up to the damage, and learn what the reads need
+        (:class:`~memlog.io.mcap.scan.DataScan`). ``past_damage``: chunks the index knows that the
+        walk did not reach, tried after it."""
+        DataScan(self).run(past_damage, damage_known=damage_known)
 
     def close(self) -> None:
         self._fh.close()
@@ -449,7 +387,9 @@ class McapLog(LogReader):
         if ref.offset in self._recent:
             self._recent.move_to_end(ref.offset)
             return self._recent[ref.offset][0]
-        got = self._read_chunk_now(ref)
+        found, got = self._from_spool(ref)
+        if not found:
+            got = self._read_chunk_now(ref)
         size = sum(len(m.data) + 64 for _, m in got or ())
         if size <= CHUNK_CACHE_BYTES:
             self._recent[ref.offset] = (got, size)
@@ -458,8 +398,41 @@ class McapLog(LogReader):
                 self._recent_bytes -= self._recent.popitem(last=False)[1][1]
         return got
 
+    def _kept_chunks(self) -> ChunkSpool | None:
+        """The job's spool (:meth:`spool`), where CRCs are checked: what it keeps was checked."""
+        return self.spool() if self.validate_crcs else None
+
+    def _records_kept(self, pos: int, body: bytes) -> tuple[list[tuple[int, Any]], bool]:
+        """The records of the chunk record ``body`` at ``pos`` (:func:`chunk_data`), kept in the
+        job's spool once they are read whole."""
+        data, checked = chunk_data(body, pos, self.validate_crcs)
+        records = records_of(data, pos)
+        spool = self._kept_chunks()
+        if spool is not None:
+            spool.put(pos, data, checked)
+        return records, checked
+
+    def _from_spool(self, ref: ChunkRef) -> tuple[bool, list[tuple[int, Message]] | None]:
+        """Whether the job's spool has the chunk at ``ref``, and the chunk as :meth:`_read_chunk_now`
+        gives it (a damaged one is reported again: None)."""
+        spool = self._kept_chunks() if ref.op == OP_CHUNK else None
+        kept = spool.get(ref.offset) if spool is not None else None
+        if isinstance(kept, str):  # found damaged by an earlier pass: said again, not read again
+            self._skipped_chunk(ref, kept)
+            return True, None
+        if kept is None:
+            return False, None
+        try:
+            records = records_of(kept[0], ref.offset)
+        except RecordDamage:
+            return False, None
+        self._chunks_crc.append(kept[1])
+        return True, self._absorb(records)
+
     def _read_chunk_now(self, ref: ChunkRef) -> list[tuple[int, Message]] | None:
+        """The chunk at ``ref`` read from the log (kept in the job's spool, damage too)."""
         pos = ref.offset
+        spool = self._kept_chunks() if ref.op == OP_CHUNK else None
         try:
             op, n = self._head(pos)
             if op != ref.op:
@@ -476,7 +449,7 @@ class McapLog(LogReader):
                     continue
                 self._fh.seek(pos + 9)
                 try:
-                    records, checked = chunk_records(self._fh.read(length), pos, self.validate_crcs)
+                    records, checked = self._records_kept(pos, self._fh.read(length))
                 except RecordDamage as exc:
                     err = exc
                     continue
@@ -485,10 +458,29 @@ class McapLog(LogReader):
             assert err is not None
             raise err
         except RecordDamage as exc:
-            self.report.count("skipped_chunks", pos)
-            self.warn(f"{self.path}: chunk at byte {pos} is damaged: {exc.reason}; "
-                      f"skipped its messages (log time {ref.start}..{ref.end})")
+            self._skipped_chunk(ref, exc.reason)
+            if spool is not None:
+                spool.put_damaged(pos, exc.reason)
             return None
+
+    def _opcode_at(self, pos: int) -> int | None:
+        """The byte at ``pos`` (a record's opcode), None past the end."""
+        self._fh.seek(pos)
+        b = self._fh.read(1)
+        return b[0] if b else None
+
+    def _place(self, pos: int) -> str:
+        """:func:`damage_place` of ``pos``, found once per file and process (each walk of a damaged
+        file meets the same damage: its zero-filled tail is not read again)."""
+        places = self._l.places
+        if pos not in places:
+            places[pos] = damage_place(self._fh, pos, self._size)
+        return places[pos]
+
+    def _skipped_chunk(self, ref: ChunkRef, reason: str) -> None:
+        self.report.count("skipped_chunks", ref.offset)
+        self.warn(f"{self.path}: chunk at byte {ref.offset} is damaged: {reason}; "
+                  f"skipped its messages (log time {ref.start}..{ref.end})")
 
     def _absorb(self, records: list[tuple[int, Any]]) -> list[tuple[int, Message]]:
         """Register the schemas and channels among ``records``; return their messages (with their
@@ -568,6 +560,13 @@ class McapLog(LogReader):
         """(offset, opcode, body) of the top-level records of the data section whose opcode is in
         ``kinds`` (other bodies are skipped by seeking), up to DataEnd/Footer; damage ends it and
         is left in ``self._walk_damage`` (None when the walk reached the end cleanly)."""
+        for pos, op, body, _n in self._walk(kinds):
+            yield pos, op, body
+
+    def _walk(self, kinds: set[int], heads: set[int] = frozenset()  # type: ignore[assignment]
+              ) -> Iterator[tuple[int, int, bytes, int]]:
+        """:meth:`_walk_records` with each record's length; of the records whose opcode is in
+        ``heads``, only the first :data:`CHUNK_HEAD` bytes of the body."""
         self._walk_damage: RecordDamage | None = None
         pos = len(MAGIC)
         size = self._size
@@ -586,7 +585,12 @@ class McapLog(LogReader):
                     if n > MAX_CHUNK_BYTES:
                         raise RecordDamage(pos, f"a record claims {n} bytes")
                     self._fh.seek(pos + 9)
-                    yield pos, op, self._fh.read(n)
+                    yield pos, op, self._fh.read(n), n
+                elif op in heads:
+                    if n > MAX_CHUNK_BYTES:
+                        raise RecordDamage(pos, f"a record claims {n} bytes")
+                    self._fh.seek(pos + 9)
+                    yield pos, op, self._fh.read(min(n, CHUNK_HEAD)), n
                 pos += 9 + n
         except RecordDamage as exc:
             self._walk_damage = exc
@@ -599,7 +603,7 @@ class McapLog(LogReader):
             rep = self.report
             rep.truncated = True
             rep.bytes_read = exc.pos if rep.bytes_read is None else min(rep.bytes_read, exc.pos)
-            self.warn(f"{self.path}: log is truncated or damaged {damage_place(self._fh, exc.pos, self._size)} "
+            self.warn(f"{self.path}: log is truncated or damaged {self._place(exc.pos)} "
                       f"({exc.reason}); read everything before it")
 
     # -- metadata / attachments ----------------------------------------------------

@@ -20,7 +20,7 @@ from memlog.io.records import SchemaInfo
 __all__ = ["MAGIC", "FOOTER_LEN", "KNOWN_OPS", "CHUNK_HEAD", "OP_HEADER", "OP_FOOTER", "OP_SCHEMA", "OP_CHANNEL",
            "OP_MESSAGE", "OP_CHUNK", "OP_MESSAGE_INDEX", "OP_CHUNK_INDEX", "OP_ATTACHMENT", "OP_METADATA",
            "OP_DATA_END", "OP_STATISTICS", "RecordDamage", "ChunkRef", "schema_info", "parse_record",
-           "chunk_records", "frame_table_of"]
+           "chunk_records", "chunk_data", "records_of", "frame_table_of"]
 
 MAGIC = b"\x89MCAP0\r\n"
 FOOTER_LEN = 1 + 8 + 8 + 8 + 4  # opcode, length, summary_start, summary_offset_start, summary_crc
@@ -73,6 +73,13 @@ def chunk_records(body: bytes, pos: int, validate_crc: bool) -> tuple[list[tuple
     """Schema, Channel and Message records of the chunk record ``body`` (at byte ``pos``), each
     with its offset in the chunk's uncompressed records, and whether the CRC was checked. Raises
     :class:`RecordDamage`."""
+    data, checked = chunk_data(body, pos, validate_crc)
+    return records_of(data, pos), checked
+
+
+def chunk_data(body: bytes, pos: int, validate_crc: bool) -> tuple[bytes, bool]:
+    """The uncompressed records of the chunk record ``body`` (at byte ``pos``), and whether the CRC
+    was checked. Raises :class:`RecordDamage`."""
     if len(body) < CHUNK_HEAD + 8:
         raise RecordDamage(pos, "chunk record is too short")
     start, end, size, crc, clen = struct.unpack_from("<QQQII", body, 0)
@@ -95,6 +102,12 @@ def chunk_records(body: bytes, pos: int, validate_crc: bool) -> tuple[list[tuple
     checked = validate_crc and crc != 0
     if checked and zlib.crc32(data) != crc:
         raise RecordDamage(pos, f"chunk fails its CRC check (expected {crc:#010x}, got {zlib.crc32(data):#010x})")
+    return bytes(data), checked
+
+
+def records_of(data: bytes, pos: int) -> list[tuple[int, Any]]:
+    """Schema, Channel and Message records of a chunk's uncompressed records ``data`` (the chunk at
+    byte ``pos``), each with its offset in ``data``. Raises :class:`RecordDamage`."""
     out: list[tuple[int, Any]] = []
     at = 0
     while at < len(data):
@@ -111,7 +124,7 @@ def chunk_records(body: bytes, pos: int, validate_crc: bool) -> tuple[list[tuple
         elif op == OP_SCHEMA:
             out.append((at, parse_record(Schema, body_i, pos)))
         at += 9 + n
-    return out, checked
+    return out
 
 
 

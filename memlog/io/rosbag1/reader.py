@@ -26,6 +26,7 @@ from typing import IO, Any
 import numpy as np
 
 from memlog.io._damage import check_regular_file, damage_place, decompress, merge_groups
+from memlog.io.spool import ChunkSpool
 from memlog.io._opened import counted_scan, file_key, holder, learned, release
 from memlog.io._rosbags import msgdef_text
 from memlog.io.base import LogReader
@@ -169,19 +170,23 @@ class _Ros1Scanner:
                 sk.damage = exc
         return sk
 
-    def _chunk_records(self, fields: dict[str, bytes], data: bytes, pos: int) -> Iterator[tuple[int, dict[str, bytes], bytes]]:
+    def _chunk_data(self, fields: dict[str, bytes], data: bytes, pos: int) -> bytes:
+        """The uncompressed records of the chunk record at ``pos``."""
         comp = fields.get("compression", b"none").decode(errors="replace")
         size = _u32(fields, "size", pos)
         if comp == "none" and size != len(data):
             self.owner.report.index_damaged = True
             self.owner.warn(f"{self.path}: chunk at byte {pos} declares {size} bytes, holds {len(data)}; "
                             "reading what it holds")
-        raw = decompress(comp, data, size) if comp != "none" else data
+        return decompress(comp, data, size) if comp != "none" else data
+
+    def _expand_raw(self, pos: int, raw: bytes) -> Iterator[tuple[int, int, dict[str, bytes], bytes]]:
+        """(container, offset, fields, data) of the records of a chunk's uncompressed records ``raw``."""
         buf = _BytesReader(raw)
         at = 0
         while at < len(raw):
             f2, d2, nxt = self._record(buf, at, len(raw))
-            yield at, f2, d2
+            yield pos, at, f2, d2
             at = nxt
 
     def walk(self, chunks: set[int] | None = None) -> Iterator[tuple[int, int, dict[str, bytes], bytes]]:
@@ -194,7 +199,12 @@ class _Ros1Scanner:
         rep = self.owner.report
         with open(self.path, "rb") as fh:
             if chunks is not None:
+                spool = self.owner.spool()
                 for pos in sorted(chunks):
+                    kept = spool.get(pos) if spool is not None else None
+                    if isinstance(kept, tuple):  # read by an earlier pass of this job (memlog.io.spool)
+                        yield from self._expand_raw(pos, kept[0])
+                        continue
                     fh.seek(pos)
                     try:
                         fields, data, _ = self._record(fh, pos, self.size)
@@ -202,7 +212,7 @@ class _Ros1Scanner:
                         if rep.count("skipped_chunks", pos):
                             self.owner.warn(f"{self.path}: record at byte {pos} is damaged ({exc.reason}); skipped")
                         continue
-                    yield from self._expand(pos, fields, data)
+                    yield from self._expand(pos, fields, data, spool)
                 return
             pos = len(_MAGIC)
             while pos < self.size:
@@ -220,16 +230,20 @@ class _Ros1Scanner:
                         return
                     pos = later[0]
                     continue
-                yield from self._expand(pos, fields, data)
+                yield from self._expand(pos, fields, data, self.owner.spool())
                 pos = nxt
 
-    def _expand(self, pos: int, fields: dict[str, bytes], data: bytes) -> Iterator[tuple[int, int, dict[str, bytes], bytes]]:
-        """The message and connection records of the record at ``pos`` (a chunk's, expanded)."""
+    def _expand(self, pos: int, fields: dict[str, bytes], data: bytes, spool: ChunkSpool | None = None
+                ) -> Iterator[tuple[int, int, dict[str, bytes], bytes]]:
+        """The message and connection records of the record at ``pos`` (a chunk's, expanded; a chunk
+        read whole is kept in ``spool``)."""
         op = fields["op"][0]
         if op == _OP_CHUNK:
             try:
-                for at, f2, d2 in self._chunk_records(fields, data, pos):
-                    yield pos, at, f2, d2
+                raw = self._chunk_data(fields, data, pos)
+                yield from self._expand_raw(pos, raw)
+                if spool is not None:
+                    spool.put(pos, raw, False)  # (ROS 1 bags have no checksums)
             except (_Bad, ValueError, OSError, EOFError) as exc:
                 self.owner.report.count("skipped_chunks", pos)
                 why = exc.reason if isinstance(exc, _Bad) else f"{type(exc).__name__}: {exc}"
