@@ -71,7 +71,8 @@ def measure(argv: list[str], log: Path, trace: Path, env: dict[str, str] | None 
     cmd = ["strace", "-ff", "-y", "-qq", "-s", "0", "-e",
            "trace=openat,open,read,pread64,readv,preadv,preadv2,write,pwrite64,writev,pwritev,pwritev2",
            "-o", str(trace), *argv]
-    res = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    res = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+                         cwd=trace.parent)  # (not a checkout: python -m puts the working directory first)
     if res.returncode not in (0, 3):  # 3: damage reported, what these logs must give
         raise SystemExit(f"{' '.join(argv)} exited {res.returncode}:\n{res.stderr[-2000:]}")
     real = os.path.realpath(log)

@@ -558,10 +558,10 @@ def _compare_maps(run: _Run, maps: _MapWriter, map_res: MapResult, map_table: De
     for name, m in given.items():
         res[name], per_variant[name] = maps.evaluate(maps.write(name, keep=m), q_t, truth_rows, cfg)
         res[name]["map"] = str(maps.path(name))
-    if map_table.whitening is not None and cfg.whiten:
-        raw = _matching(q_t.projected(map_table.patch_pca), ref_t.projected(map_table.patch_pca), cfg)
-        full_mask = np.isin(ref_t.frame_index, maps.table(full_res).frame_index)
-        res["full_unwhitened"] = raw.evaluate(truth_rows, full_mask)[0]
+    full_t = maps.table(full_res)
+    if full_t.whitening is not None and cfg.whiten:  # the full map unwhitened: its frames, its own patch PCA
+        raw = _matching(q_t.projected(full_t.patch_pca), ref_t.projected(full_t.patch_pca), cfg)
+        res["full_unwhitened"] = raw.evaluate(truth_rows, np.isin(ref_t.frame_index, full_t.frame_index))[0]
     res["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
                              "select": cfg.select.mode, "candidates": cfg.candidates,
                              "keep_fraction": cfg.select.keep_fraction, "gaps": len(sel.gaps),
