@@ -289,7 +289,7 @@ BENCHES: list[Bench] = [
     Bench("read_count",
           ("python", "benchmarks/read_count.py", "--work", "{work}/reads"),
           "how many times `map`, `map --workers 2` and `batch` read a damaged and an unfinished log (bytes read from "
-          "it over its size, and opens, under strace)",
+          "it over its size, and opens, under strace; and the bytes the job's spool wrote and read back)",
           8, ("shared",)),
     Bench("gpu_check",
           ("python", "benchmarks/gpu_check.py", "--smoke", "--work", "{work}/gpu"),
