@@ -12,6 +12,7 @@ import importlib.util
 import os
 import shutil
 from pathlib import Path
+from collections import Counter
 from collections.abc import Iterator
 from types import ModuleType
 from typing import NoReturn
@@ -202,3 +203,25 @@ def zstd_bag(dest: Path) -> Path:
                     .replace("compression_format: ''", "compression_format: zstd")
                     .replace("compression_mode: ''", "compression_mode: FILE"))
     return dest
+
+
+def cut_copy(src: Path, dst: Path, fraction: float = 0.85) -> Path:
+    """``src``'s first ``fraction`` of bytes at ``dst``: a recording that was never finished."""
+    data = src.read_bytes()
+    dst.write_bytes(data[: int(len(data) * fraction)])
+    return dst
+
+
+def count_chunk_reads(monkeypatch: pytest.MonkeyPatch) -> Counter[int]:
+    """Counts, by offset, the chunks this process reads from an MCAP log itself (not from a job's spool)."""
+    from memlog.io.mcap import reader as mcap_reader
+
+    reads: Counter[int] = Counter()
+    real = mcap_reader.McapLog._read_chunk_now
+
+    def counting(self, ref):  # type: ignore[no-untyped-def]
+        reads[ref.offset] += 1
+        return real(self, ref)
+
+    monkeypatch.setattr(mcap_reader.McapLog, "_read_chunk_now", counting)
+    return reads

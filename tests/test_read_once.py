@@ -9,7 +9,6 @@ import os
 import pickle
 import subprocess
 import sys
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -19,13 +18,7 @@ from memlog.io import _opened
 from memlog.io.base import FrameWindow
 from memlog.io.open import open_log
 from memlog.runtime import current, use
-from tests.conftest import FIXTURES, ROOT, shared
-
-
-def _cut(src: Path, dst: Path, fraction: float = 0.85) -> Path:
-    data = src.read_bytes()
-    dst.write_bytes(data[: int(len(data) * fraction)])
-    return dst
+from tests.conftest import FIXTURES, ROOT, count_chunk_reads, cut_copy, shared
 
 
 def _frames(path: Path) -> list[tuple[str, int, int, bytes]]:
@@ -51,7 +44,7 @@ print(json.dumps({"scans": scans(path), "frames": frames, "damage": damage}))
 def test_a_scan_is_kept_for_other_processes(name: str, tmp_path: Path) -> None:
     import json
 
-    log = _cut(FIXTURES / name, tmp_path / name)
+    log = cut_copy(FIXTURES / name, tmp_path / name)
     cache = tmp_path / "cache"
     with use(current().replace(cache_dir=str(cache))):
         want = _frames(log)
@@ -74,7 +67,7 @@ def test_a_scan_is_kept_for_other_processes(name: str, tmp_path: Path) -> None:
 
 
 def test_a_broken_or_foreign_scan_record_is_not_used(tmp_path: Path) -> None:
-    log = _cut(FIXTURES / "demo.mcap", tmp_path / "demo.mcap")
+    log = cut_copy(FIXTURES / "demo.mcap", tmp_path / "demo.mcap")
     with use(current().replace(cache_dir=str(tmp_path / "cache"))):
         want = _frames(log)
         _opened.clear_cache()
@@ -110,20 +103,12 @@ def test_the_staged_detector_reads_each_chunk_once(tmp_path: Path, monkeypatch: 
     """`memlog map` on one process: pass 1, the staged detector (a few frames of each segment at a
     time) and the map writer each read a chunk of the log at most once, also without the job's
     spool (tests/test_spool.py: with it, once in all)."""
-    from memlog.io.mcap import reader as mcap_reader
     from memlog.steps.map import make_map
     from tests.stand_in import use_stand_in
 
     use_stand_in(monkeypatch)
     log = shared("stromovka_autumn.mcap")
-    reads: Counter[int] = Counter()
-    real = mcap_reader.McapLog._read_chunk_now
-
-    def counting(self, ref):  # type: ignore[no-untyped-def]
-        reads[ref.offset] += 1
-        return real(self, ref)
-
-    monkeypatch.setattr(mcap_reader.McapLog, "_read_chunk_now", counting)
+    reads = count_chunk_reads(monkeypatch)
     with use(current().replace(spool_bytes=0)):  # (the spool off: each pass reads the log)
         make_map(log, tmp_path / "map.mcap")
     assert reads and max(reads.values()) <= 3, reads  # three passes; the detector's segments share chunks

@@ -20,14 +20,8 @@ from memlog.io import spool
 from memlog.io.mcap import reader as mcap_reader
 from memlog.io.open import open_log
 from memlog.runtime import current, use
-from tests.conftest import FIXTURES, ROOT, shared, skip_or_fail
+from tests.conftest import FIXTURES, ROOT, count_chunk_reads, cut_copy, shared, skip_or_fail
 from tests.same_outputs import normalised_map, normalised_parquet
-
-
-def _cut(src: Path, dst: Path, fraction: float = 0.85) -> Path:
-    data = src.read_bytes()
-    dst.write_bytes(data[: int(len(data) * fraction)])
-    return dst
 
 
 def _crc(src: Path, dst: Path) -> Path:
@@ -51,21 +45,8 @@ def _frames(path: Path) -> tuple[list[tuple[str, int, int, bytes]], list[str]]:
         return frames, log.report.damage()
 
 
-def _counting(monkeypatch: pytest.MonkeyPatch) -> Counter[int]:
-    """Counts the chunks read from an MCAP log (not from the spool) in this process, by offset."""
-    reads: Counter[int] = Counter()
-    real = mcap_reader.McapLog._read_chunk_now
-
-    def counting(self, ref):  # type: ignore[no-untyped-def]
-        reads[ref.offset] += 1
-        return real(self, ref)
-
-    monkeypatch.setattr(mcap_reader.McapLog, "_read_chunk_now", counting)
-    return reads
-
-
 def test_a_job_keeps_its_chunks_until_the_outer_job_ends(tmp_path: Path) -> None:
-    log = _cut(FIXTURES / "demo.mcap", tmp_path / "demo.mcap")
+    log = cut_copy(FIXTURES / "demo.mcap", tmp_path / "demo.mcap")
     with use(current().replace(cache_dir=str(tmp_path / "cache"))):
         want = _frames(log)
         root = tmp_path / "cache" / "spool"
@@ -83,9 +64,9 @@ def test_a_job_keeps_its_chunks_until_the_outer_job_ends(tmp_path: Path) -> None
 
 
 def test_each_chunk_is_read_from_the_log_once_per_job(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    log = _cut(FIXTURES / "demo.mcap", tmp_path / "demo.mcap")
+    log = cut_copy(FIXTURES / "demo.mcap", tmp_path / "demo.mcap")
     with use(current().replace(cache_dir=str(tmp_path / "cache"))):
-        reads = _counting(monkeypatch)
+        reads = count_chunk_reads(monkeypatch)
         want = _frames(log)
         reads.clear()
         with spool.job(log):
@@ -112,7 +93,7 @@ def test_a_damaged_chunk_is_reported_again_without_being_read_again(tmp_path: Pa
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     log = _crc(shared("stromovka_autumn.mcap"), tmp_path / "crc.mcap")
     with use(current().replace(cache_dir=str(tmp_path / "cache"))):
-        reads = _counting(monkeypatch)
+        reads = count_chunk_reads(monkeypatch)
         want = _frames(log)
         assert want[1] and len(want[0]) < 101  # the damage is found, its frames are missing
         reads.clear()
@@ -126,7 +107,7 @@ def test_an_unfinished_mcap_is_scanned_from_its_message_indexes(tmp_path: Path,
                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     """The scan of a log without a summary reads the chunks' message indexes, not their data (only a
     chunk whose Channel record it needs); its frame tables are what reading every chunk gives."""
-    log = _cut(shared("stromovka_autumn.mcap"), tmp_path / "cut.mcap")
+    log = cut_copy(shared("stromovka_autumn.mcap"), tmp_path / "cut.mcap")
     with use(current().replace(cache_dir=str(tmp_path / "cache"))):
         decompressed: list[int] = []
         real = mcap_reader.chunk_data
@@ -170,7 +151,7 @@ def test_an_unfinished_mcap_is_scanned_from_its_message_indexes(tmp_path: Path,
 def test_a_ros1_bag_is_read_once_per_job(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from memlog.io.rosbag1 import reader as ros1
 
-    log = _cut(FIXTURES / "ros1.bag", tmp_path / "ros1.bag")
+    log = cut_copy(FIXTURES / "ros1.bag", tmp_path / "ros1.bag")
     with use(current().replace(cache_dir=str(tmp_path / "cache"))):
         want = _frames(log)
         chunks: Counter[int] = Counter()
@@ -195,7 +176,7 @@ def test_map_with_and_without_the_spool_writes_the_same_map(tmp_path: Path, monk
 
     use_stand_in(monkeypatch)
     log = _crc(shared("stromovka_autumn.mcap"), tmp_path / "crc.mcap")
-    reads = _counting(monkeypatch)  # (the models' cache directory, so the spool's, is the user's)
+    reads = count_chunk_reads(monkeypatch)  # (the models' cache directory, so the spool's, is the user's)
     for d in ("on", "off"):
         (tmp_path / d).mkdir()
     on = make_map(log, tmp_path / "on" / "map.mcap")
