@@ -30,6 +30,7 @@ import logging
 import os
 import shutil
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -42,6 +43,7 @@ log = logging.getLogger(__name__)
 
 #: The spool never writes a chunk that would leave less than this free on its disk.
 MIN_FREE_BYTES = 2 << 30
+_LOCK = threading.Lock()  # (guards the runtime context's count of jobs per log)
 #: A spool folder untouched this long is left from a job that died (removed by the next job).
 STALE_S = 24 * 3600.0
 
@@ -146,23 +148,30 @@ def job(path: str | os.PathLike[str]) -> Iterator[None]:
         yield
         return
     jobs = current().spools
-    outer = jobs.get(name, 0) > 0
     folder = _root() / name
-    if not outer:
-        _remove_stale(folder)
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            log.debug("spool: %s not made (%s); the log is read at every pass", folder, exc)
-            yield
-            return
-    jobs[name] = jobs.get(name, 0) + 1
+    with _LOCK:  # (batch runs logs on threads)
+        ready = jobs.get(name, 0) > 0
+        if not ready:
+            _remove_stale(folder)
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                ready = True
+            except OSError as exc:
+                log.debug("spool: %s not made (%s); the log is read at every pass", folder, exc)
+        if ready:
+            jobs[name] = jobs.get(name, 0) + 1
+    if not ready:
+        yield
+        return
     try:
         yield
     finally:
-        jobs[name] -= 1
-        if jobs[name] <= 0:
-            del jobs[name]
+        with _LOCK:
+            jobs[name] -= 1
+            last = jobs[name] <= 0
+            if last:
+                del jobs[name]
+        if last:
             shutil.rmtree(folder, ignore_errors=True)
 
 
