@@ -9,7 +9,9 @@ table once per log (and per process, :mod:`memlog.io._opened`), **before** any f
   in a chunk that later turns out to be unreadable — its number is then missing from the
   stream, and the frames after it keep theirs;
 * otherwise from the one scan of the data the reader makes when it opens an unindexed or
-  damaged log: every message that scan could read.
+  damaged log: every message that scan could read, or that the message indexes an MCAP writer
+  put after each chunk list (an unfinished MCAP: a chunk learned from its indexes is numbered
+  as an indexed log's is, also when its data later turns out to be unreadable).
 
 A message read later is numbered by looking up *where* it was read (``RawMessage.where``: the
 chunk or row and the offset inside it), never by counting what a stream happened to read. So a
