@@ -232,20 +232,15 @@ class Runtime:
     spools: dict[str, int] = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
-        mp = self.max_pixels
-        if isinstance(mp, bool) or not isinstance(mp, int) or mp < 1:
-            raise ConfigError(f"max pixels must be an integer >= 1, got {mp!r}")
+        _check_int(self.max_pixels, 1, "max pixels")
         if self.entropy_kernel not in ENTROPY_KERNELS:
             raise ScoringError(f"entropy kernel must be one of {', '.join(ENTROPY_KERNELS)}, "
                                f"got {self.entropy_kernel!r}")
         if self.device not in DEVICES:
             raise ConfigError(f"the device must be one of {', '.join(DEVICES)}, got {self.device!r}")
-        sb = self.spool_bytes
-        if isinstance(sb, bool) or not isinstance(sb, int) or sb < 0:
-            raise ConfigError(f"the spool size must be an integer >= 0 (bytes), got {sb!r}")
+        _check_int(self.spool_bytes, 0, "the spool size", " (bytes)")
         size = self.model_cache_size
-        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-            raise ConfigError(f"the model cache size must be an integer >= 1, got {size!r}")
+        _check_int(size, 1, "the model cache size")
         if self.models.max_entries != size:  # the bound of the Runtime in force
             self.models.resize(size)
 
@@ -291,6 +286,12 @@ class Runtime:
         return cls(**kw)
 
 
+def _check_int(value: Any, least: int, what: str, unit: str = "") -> None:
+    """A ConfigError unless ``value`` is an integer (not a bool) of at least ``least``."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise ConfigError(f"{what} must be an integer >= {least}{unit}, got {value!r}")
+
+
 def _rebuild(settings: dict[str, Any]) -> Runtime:
     """A Runtime with ``settings`` and empty caches (how a Runtime unpickles)."""
     return Runtime(**settings)
@@ -300,17 +301,22 @@ def _text(env: Mapping[str, str], name: str) -> str:
     return str(env.get(name) or "").strip()
 
 
-def _max_pixels(env: Mapping[str, str]) -> dict[str, Any]:
-    raw = _text(env, "MEMLOG_MAX_PIXELS")
+def _int_var(env: Mapping[str, str], name: str, key: str, least: int, unit: str = "") -> dict[str, Any]:
+    """``{key: value}`` of the integer variable ``name`` (at least ``least``; ``{}`` when unset)."""
+    raw = _text(env, name)
     if not raw:
         return {}
     try:
         n = int(raw)
     except ValueError:
-        n = 0
-    if n < 1:
-        raise ConfigError(f"MEMLOG_MAX_PIXELS must be an integer >= 1, got {raw!r}")
-    return {"max_pixels": n}
+        n = least - 1
+    if n < least:
+        raise ConfigError(f"{name} must be an integer >= {least}{unit}, got {raw!r}")
+    return {key: n}
+
+
+def _max_pixels(env: Mapping[str, str]) -> dict[str, Any]:
+    return _int_var(env, "MEMLOG_MAX_PIXELS", "max_pixels", 1)
 
 
 def _entropy_kernel(env: Mapping[str, str]) -> dict[str, Any]:
@@ -340,16 +346,7 @@ def _device(env: Mapping[str, str]) -> dict[str, Any]:
 
 
 def _spool_bytes(env: Mapping[str, str]) -> dict[str, Any]:
-    raw = _text(env, "MEMLOG_SPOOL_BYTES")
-    if not raw:
-        return {}
-    try:
-        n = int(raw)
-    except ValueError:
-        n = -1
-    if n < 0:
-        raise ConfigError(f"MEMLOG_SPOOL_BYTES must be an integer >= 0 (bytes; 0 turns the spool off), got {raw!r}")
-    return {"spool_bytes": n}
+    return _int_var(env, "MEMLOG_SPOOL_BYTES", "spool_bytes", 0, " (bytes; 0 turns the spool off)")
 
 
 def _ray_address(env: Mapping[str, str]) -> dict[str, Any]:

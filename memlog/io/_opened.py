@@ -51,7 +51,7 @@ from memlog._version import __version__
 from memlog.runtime import DEFAULT_OPENED_LOGS, OpenedLogs, current
 
 __all__ = ["Learned", "learned", "release", "holder", "clear_cache", "file_key", "scans", "MAX_ENTRIES", "MAX_SCANS",
-           "scan_record_path"]
+           "scan_record_path", "key_digest"]
 
 #: Logs whose structure is kept when no reader uses them.
 MAX_ENTRIES = DEFAULT_OPENED_LOGS
@@ -109,10 +109,14 @@ def learned(key: Hashable, make: Callable[[], S]) -> tuple[S, bool]:
     return entry, new and not recalled
 
 
+def key_digest(key: Hashable) -> str:
+    """A file name for ``key`` (a :func:`file_key`): what memlog keeps of that file on disk is named by it."""
+    return hashlib.sha256(repr(key).encode()).hexdigest()[:32]
+
+
 def scan_record_path(key: Hashable) -> Path:
     """Where the scan record of ``key`` (a :func:`file_key`) is kept."""
-    digest = hashlib.sha256(repr(key).encode()).hexdigest()[:32]
-    return current().cache_path() / "scans" / f"{digest}.pickle"
+    return current().cache_path() / "scans" / f"{key_digest(key)}.pickle"
 
 
 class _PlainUnpickler(pickle.Unpickler):

@@ -25,7 +25,6 @@ job removes the folder when it ends (an outer job of the same log in the same pr
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import logging
 import os
 import shutil
@@ -35,6 +34,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from memlog.io._opened import file_key, key_digest
 from memlog.runtime import DEFAULT_SPOOL_BYTES, current
 
 __all__ = ["ChunkSpool", "job", "spool_of", "MIN_FREE_BYTES", "DEFAULT_SPOOL_BYTES"]
@@ -49,16 +49,14 @@ STALE_S = 24 * 3600.0
 
 
 def _identity(path: str | os.PathLike[str]) -> str | None:
-    """The folder name of ``path``'s spool (None when it is not a regular file)."""
-    real = os.path.realpath(path)
+    """The folder name of ``path``'s spool: its :func:`~memlog.io._opened.file_key` (None when it is
+    not a regular file)."""
+    if not os.path.isfile(path):
+        return None
     try:
-        st = os.stat(real)
+        return key_digest(file_key("spool", os.fspath(path)))
     except OSError:
         return None
-    if not os.path.isfile(real):
-        return None
-    key = repr((real, st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns))
-    return hashlib.sha256(key.encode()).hexdigest()[:32]
 
 
 def _root() -> Path:
@@ -71,7 +69,6 @@ class ChunkSpool:
     def __init__(self, folder: Path) -> None:
         self.folder = folder
         self.written = 0  # bytes this process put here
-        self.hits = 0
 
     def _file(self, offset: int) -> Path:
         return self.folder / f"{offset}.chunk"
@@ -88,7 +85,6 @@ class ChunkSpool:
         kind = blob[:1]
         if kind not in (b"c", b"u", b"d"):
             return None
-        self.hits += 1
         if kind == b"d":
             return blob[1:].decode("utf-8", "replace")
         return blob[1:], kind == b"c"

@@ -29,6 +29,7 @@ import os
 import struct
 from collections import OrderedDict
 from collections.abc import Iterator
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from typing import IO, Any
 
@@ -563,7 +564,7 @@ class McapLog(LogReader):
         for pos, op, body, _n in self._walk(kinds):
             yield pos, op, body
 
-    def _walk(self, kinds: set[int], heads: set[int] = frozenset()  # type: ignore[assignment]
+    def _walk(self, kinds: AbstractSet[int], heads: AbstractSet[int] = frozenset()
               ) -> Iterator[tuple[int, int, bytes, int]]:
         """:meth:`_walk_records` with each record's length; of the records whose opcode is in
         ``heads``, only the first :data:`CHUNK_HEAD` bytes of the body."""
@@ -581,16 +582,11 @@ class McapLog(LogReader):
                     raise RecordDamage(pos, f"a record claims {n} bytes, past the end of the file")
                 if op == OP_DATA_END or op == OP_FOOTER:
                     return
-                if op in kinds:
+                if op in kinds or op in heads:
                     if n > MAX_CHUNK_BYTES:
                         raise RecordDamage(pos, f"a record claims {n} bytes")
                     self._fh.seek(pos + 9)
-                    yield pos, op, self._fh.read(n), n
-                elif op in heads:
-                    if n > MAX_CHUNK_BYTES:
-                        raise RecordDamage(pos, f"a record claims {n} bytes")
-                    self._fh.seek(pos + 9)
-                    yield pos, op, self._fh.read(min(n, CHUNK_HEAD)), n
+                    yield pos, op, self._fh.read(n if op in kinds else min(n, CHUNK_HEAD)), n
                 pos += 9 + n
         except RecordDamage as exc:
             self._walk_damage = exc

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import struct
 from collections.abc import Iterator
+from collections.abc import Set as AbstractSet
 from typing import IO, Any, Protocol
 
 from mcap.records import Channel, Message, MessageIndex, Schema
@@ -30,6 +31,8 @@ from memlog.io.mcap.records import (
 )
 from memlog.io.records import ReadReport
 
+__all__ = ["DataScan"]
+
 
 class McapLog(Protocol):
     """What the scan uses of :class:`memlog.io.mcap.reader.McapLog` (the reader it scans for)."""
@@ -43,12 +46,11 @@ class McapLog(Protocol):
     def warn(self, msg: str) -> None: ...
     def _records_kept(self, pos: int, body: bytes) -> tuple[list[tuple[int, Any]], bool]: ...
     def _absorb(self, records: list[tuple[int, Any]]) -> list[tuple[int, Message]]: ...
-    def _walk(self, kinds: set[int], heads: set[int] = ...) -> Iterator[tuple[int, int, bytes, int]]: ...
+    def _walk(self, kinds: AbstractSet[int], heads: AbstractSet[int] = ...) -> Iterator[tuple[int, int, bytes, int]]: ...
     def _opcode_at(self, pos: int) -> int | None: ...
     def _read_chunk(self, ref: ChunkRef) -> list[tuple[int, Message]] | None: ...
     def _place(self, pos: int) -> str: ...
 
-__all__ = ["DataScan"]
 
 _Pending = tuple[int, int, bytes, dict[int, list[tuple[int, int]]]]  # chunk: offset, length, head, its indexes
 
