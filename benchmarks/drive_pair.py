@@ -2,21 +2,24 @@
 """Maps of every size on drives as cameras record them, through the CLI as a user runs it.
 
     python benchmarks/drive_pair.py                      # Markdown table (about 15 minutes on 2 cores)
-    python benchmarks/drive_pair.py --pairs drive --keep 0.5 --hmm on
+    python benchmarks/drive_pair.py --pairs drive --keep 0.5 --matcher default
 
 Every row is ``memlog evaluate`` on a shared pair, whose maps are all written by ``memlog map``'s
 writer and matched as ``memlog localize`` matches them (``tests/test_drive_pair.py`` checks that
 its full and memorable rows equal ``memlog localize`` against the maps ``memlog map`` writes):
 
 * **full**: ``memlog map --keep-fraction 1`` (every frame but the stops' repeats);
-* **memorable**: ``memlog map --keep-fraction K`` (memlog's selection; K = 0.25 is the default);
+* **memorable**: ``memlog map --keep-fraction K`` (memlog's selection), or ``memlog map`` (``default``:
+  its default size, one frame per ``VIEW_STEP_CAP`` of the drive's view change);
 * **every k-th** and **random** (mean of ``--seeds`` maps): maps of the memorable map's size.
 
 Pairs (``../shared/data``): ``aligned``, the Stromovka autumn map / winter query, frame i of one is
 place i of the other; ``drive``, the same places driven as a camera records a drive, with stops,
 crawls and fast stretches, another speed profile on each drive (``stromovka_drive_*``; 1024x384,
 DINOv2, patch re-rank); ``nordland``, the Nordland summer / winter slice (64x32, thumbnails: no
-patch features, so neither the re-rank nor the drive HMM runs). ``--hmm off`` is ``--no-hmm``.
+patch features, so neither the re-rank nor the drive HMM runs). ``--matcher``: ``default``,
+``no-ensemble`` (``--no-ensemble``: the drive HMM in the map's whole whitening only) and ``no-hmm``
+(``--no-hmm``).
 
 Columns: R@1 / AUC-PR of each map under the map-only protocol, and the frames of the full and the
 memorable map. Outputs are kept in ``--cache`` (each pair's descriptors are reused across rows).
@@ -39,18 +42,21 @@ SHARED = ROOT.parent / "shared" / "data"
 PAIRS = {"aligned": ("stromovka_autumn.mcap", "stromovka_winter.mcap", "stromovka_truth.json"),
          "drive": ("stromovka_drive_autumn.mcap", "stromovka_drive_winter.mcap", "stromovka_drive_truth.json"),
          "nordland": ("nordland_dev_summer.mcap", "nordland_dev_winter.mcap", "nordland_dev_truth.json")}
-KEEPS = ["0.5", "0.25"]
+KEEPS = ["0.5", "default"]  # "default": no --keep-fraction (one frame per VIEW_STEP_CAP of view change)
+MATCHERS = {"default": [], "no-ensemble": ["--no-ensemble"], "no-hmm": ["--no-hmm"]}
 
 
-def run(cache: Path, pair: str, keep: str, hmm: bool, seeds: int) -> dict[str, object]:
-    """``memlog evaluate`` of ``pair`` at ``--keep-fraction keep``; its results.json."""
+def run(cache: Path, pair: str, keep: str, matcher: str, seeds: int) -> dict[str, object]:
+    """``memlog evaluate`` of ``pair`` at ``--keep-fraction keep`` (``default``: memlog's default size)
+    with the matcher's flags ``MATCHERS[matcher]``; its results.json."""
     from memlog.cli.app import main as memlog
 
     ref, query, truth = (SHARED / f for f in PAIRS[pair])
     out = cache / pair
     out.mkdir(parents=True, exist_ok=True)
     args = ["-q", "evaluate", "--reference", str(ref), "--query", str(query), "--truth", str(truth), "-o", str(out),
-            "--keep-fraction", keep, "--seeds", str(seeds), "--no-report", *([] if hmm else ["--no-hmm"])]
+            *([] if keep == "default" else ["--keep-fraction", keep]), "--seeds", str(seeds), "--no-report",
+            *MATCHERS[matcher]]
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(io.StringIO()):  # (evaluate's own table; the row is printed below)
         rc = memlog(args)
@@ -69,18 +75,23 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-drive-pair"))
     ap.add_argument("--pairs", nargs="+", default=list(PAIRS), choices=list(PAIRS))
-    ap.add_argument("--keep", nargs="+", default=KEEPS, help="keep fractions of the memorable map (default 0.5 0.25)")
-    ap.add_argument("--hmm", nargs="+", default=["on", "off"], choices=["on", "off"])
+    ap.add_argument("--keep", nargs="+", default=KEEPS,
+                    help="sizes of the memorable map: keep fractions, or default (default: 0.5 default)")
+    ap.add_argument("--matcher", nargs="+", default=["default", "no-ensemble"], choices=list(MATCHERS),
+                    help="the matcher's settings (default: default no-ensemble; Nordland, which has no patch "
+                         "features, runs the default only)")
     ap.add_argument("--seeds", type=int, default=20)
     a = ap.parse_args()
-    print("| pair | keep | drive HMM | full | memorable | every k-th | random | frames (full / memorable) | s |\n"
+    print("| pair | keep | matcher | full | memorable | every k-th | random | frames (full / memorable) | s |\n"
           "|---|---|---|---|---|---|---|---|---|")
     for pair in a.pairs:
         for keep in a.keep:
-            for hmm in a.hmm:
-                r = run(a.cache, pair, keep, hmm == "on", a.seeds)
+            for matcher in a.matcher:
+                if pair == "nordland" and matcher != "default":
+                    continue  # thumbnails: no re-rank, so neither the drive HMM nor its ensemble runs
+                r = run(a.cache, pair, keep, matcher, a.seeds)
                 rows = {k: r[k] for k in ("full", "memorable", "uniform", "random")}
-                print(f"| {pair} | {keep} | {hmm} | {cell(rows['full'])} | {cell(rows['memorable'])} | "
+                print(f"| {pair} | {keep} | {matcher} | {cell(rows['full'])} | {cell(rows['memorable'])} | "
                       f"{cell(rows['uniform'])} | {cell(rows['random'])} | {rows['full']['frames']} / "
                       f"{rows['memorable']['frames']} | {r['bench_seconds']:.0f} |", flush=True)
     return 0

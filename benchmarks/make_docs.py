@@ -193,14 +193,14 @@ BENCHES: list[Bench] = [
           40, ("shared", "models"), defaults_anchor="the-drive-matcher-localize-evaluate"),
     Bench("rerank_table",
           ("python", "benchmarks/rerank_table.py", "--cache", "{work}/matcher-defaults"),
-          "patch re-ranking and the drive HMM on the drive matcher's best places: Stromovka, frame-aligned and as drives "
-          "with stops (full, half and quarter maps), Nordland",
+          "patch re-ranking, the drive HMM and its whitening ensemble on the drive matcher's best places: Stromovka, "
+          "frame-aligned and as drives with stops (full, half and default maps), Nordland",
           15, ("shared", "models")),
     Bench("drive_pair",
           ("python", "benchmarks/drive_pair.py", "--cache", "{work}/drive-pair"),
           "maps of every size through `memlog evaluate` (every row a map `memlog map` writes, matched as `memlog "
-          "localize` matches it), with and without the drive HMM: the Stromovka pair, the Stromovka drive pair with "
-          "stops, crawls and fast stretches, and Nordland",
+          "localize` matches it), with and without the whitening ensemble: the Stromovka pair, the Stromovka drive pair "
+          "with stops, crawls and fast stretches, and Nordland; half maps and memlog's default size",
           20, ("shared", "models"), defaults_anchor="drives-as-cameras-record-them"),
     Bench("drive_maps",
           ("python", "benchmarks/drive_maps.py", "--scores", "{scores}", "--cache", "{work}/drive-maps"),

@@ -50,7 +50,7 @@ SETTINGS: dict[str, dict[str, Any]] = {
 PAIRS = {"stromovka": ("stromovka_autumn.mcap", "stromovka_winter.mcap", "stromovka_truth.json"),
          "stromovka-drive": ("stromovka_drive_autumn.mcap", "stromovka_drive_winter.mcap", "stromovka_drive_truth.json"),
          "nordland": ("nordland_dev_summer.mcap", "nordland_dev_winter.mcap", "nordland_dev_truth.json")}
-FRACTIONS = {"full": 1.0, "half": 0.5, "quarter": 0.25}
+FRACTIONS: dict[str, float | None] = {"full": 1.0, "half": 0.5, "quarter": 0.25, "default": None}  # None: no --keep-fraction
 
 
 def metrics(indices: np.ndarray, confidence: np.ndarray, truth: list[set[int]]) -> dict[str, float]:
@@ -78,7 +78,8 @@ def _map(cache: Path, pair: str, which: str, args: Sequence[str] = ()) -> Path:
         from memlog.cli.app import main as memlog
 
         ref = SHARED / PAIRS[pair][0]
-        if memlog(["-q", "map", str(ref), "-o", str(out), "--keep-fraction", str(FRACTIONS[which]), *args]) != 0:
+        size = [] if FRACTIONS[which] is None else ["--keep-fraction", str(FRACTIONS[which])]
+        if memlog(["-q", "map", str(ref), "-o", str(out), *size, *args]) != 0:
             raise SystemExit(f"memlog map {ref} failed")
     return out.with_suffix(".parquet")
 

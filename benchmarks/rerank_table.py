@@ -8,8 +8,8 @@ and query tables made as ``localize`` makes them (``benchmarks/matcher_defaults.
 queries, cached in ``--cache``).
 
 Data (``../shared/data``): Stromovka autumn map / winter query (1024x384, DINOv2; maps of every
-frame, memlog's half and quarter maps — ``--keep-fraction 1 / 0.5 / 0.25``; memlog's default map
-of this drive is the quarter one), the same places as drives with stops, crawls and fast stretches
+frame, memlog's half map and its default map — ``--keep-fraction 1 / 0.5``, no size: one frame per
+``VIEW_STEP_CAP`` of view change; ``--maps quarter`` adds ``--keep-fraction 0.25``), the same places as drives with stops, crawls and fast stretches
 (``stromovka-drive``: ``stromovka_drive_*``, the same maps) and Nordland summer / winter (64x32,
 thumbnails: no patch features, so no re-rank and no drive HMM).
 
@@ -36,15 +36,16 @@ ROWS = {"single frames": {"length": 0, "rerank": False},
         "single frames + re-rank": {"length": 0},
         "sequences": {"rerank": False},
         "sequences + re-rank (--no-hmm)": {"hmm": False},
-        "sequences + re-rank + drive HMM (default)": {}}
-MAPS = {"stromovka": list(FRACTIONS), "stromovka-drive": list(FRACTIONS), "nordland": ["full"]}
+        "sequences + re-rank + drive HMM (--no-ensemble)": {"ensemble": False},
+        "sequences + re-rank + drive HMM + whitening ensemble (default)": {}}
+MAPS = {"stromovka": ["full", "half", "default"], "stromovka-drive": ["full", "half", "default"], "nordland": ["full"]}
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-matcher-defaults-2"))
     ap.add_argument("--pairs", nargs="+", default=list(MAPS), choices=list(MAPS))
-    ap.add_argument("--maps", nargs="+", choices=list(FRACTIONS), help="Stromovka's maps (default all three)")
+    ap.add_argument("--maps", nargs="+", choices=list(FRACTIONS), help="Stromovka's maps (default full, half, default)")
     ap.add_argument("--map-args", default="", metavar="ARGS",
                     help="more `memlog map` flags, e.g. \"--whiten-on drive\" (use a --cache of its own)")
     a = ap.parse_args()

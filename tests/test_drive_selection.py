@@ -342,3 +342,36 @@ def test_centre_tolerance_is_checked() -> None:
     for bad in (-0.1, 1.5, float("nan")):
         with pytest.raises(ConfigError, match="centre_tolerance"):
             SelectionConfig(keep_fraction=0.25, centre_tolerance=bad)
+
+
+def test_the_default_size_follows_the_drives_view_change_not_its_frame_count() -> None:
+    """Without a size, a map keeps one frame per ``VIEW_STEP_CAP`` of the drive's view change:
+    the number of segments is the view change summed here by hand (each step's chord, capped)
+    over ``VIEW_STEP_CAP``; the same drive with a 60-frame stop in the middle gets no more
+    segments (a stop adds no view change), where a fixed fraction would give it 15 more."""
+    from memlog.selection.coordinates import VIEW_STEP_CAP
+
+    strip = _strip(1400)
+    moving = np.arange(0, 600, 6.0)
+    t = _table(_drive(strip, moving))
+    v = t.view.astype(np.float64)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    chord = np.minimum(np.sqrt(2.0 * np.clip(1.0 - np.sum(v[1:] * v[:-1], axis=1), 0.0, None)), VIEW_STEP_CAP)
+    sel = select(t, "segment")
+    assert sel.info["by"] == "view" and sel.info["spacing_view"] == VIEW_STEP_CAP
+    np.testing.assert_allclose(sel.info["view_change"], chord.sum(), rtol=1e-5)
+    assert sel.info["n_bins"] == int(np.ceil(chord.sum() / VIEW_STEP_CAP - 1e-9))
+    assert len(sel.kept_indices) == sel.info["n_segments"]
+    with_stop = np.concatenate([moving[:50], np.full(60, moving[49]), moving[50:]])
+    ts = _table(_drive(strip, with_stop))
+    stopped = select(ts, "segment")
+    assert stopped.info["still_frames"] == 60
+    assert abs(stopped.info["n_bins"] - sel.info["n_bins"]) <= 1
+    assert select(ts, "segment", keep_fraction=0.25).info["n_bins"] - select(t, "segment", keep_fraction=0.25).info[
+        "n_bins"] == 15
+    # a larger spacing, fewer frames; a table without view vectors falls back to a quarter, and says so
+    assert select(t, "segment", spacing_view=2 * VIEW_STEP_CAP).info["n_bins"] == int(
+        np.ceil(chord.sum() / (2 * VIEW_STEP_CAP) - 1e-9))
+    bare = ScoreTable(index=t.index, t_ns=t.t_ns, ms=t.ms, ss=t.ss, es=t.es)
+    fallback = select(bare, "segment")
+    assert fallback.info["n_bins"] == 25 and "no view vectors" in fallback.info["size_note"]

@@ -675,18 +675,21 @@ def test_segment_defaults_have_one_source_and_combined_score_defaults_to_geometr
 
     # the documented choices (README "defaults" table, segment module docstring)
     d = SEGMENT_DEFAULTS
-    assert (d.combine, d.keep_fraction, d.min_ss) == ("geometric", 0.25, 0.1)
-    keys = ("by", "keep_fraction", "combine", "weights", "min_ms", "min_ss", "min_es", "view_distance",
-            "distinct_weight")
+    from memlog.selection.coordinates import VIEW_STEP_CAP
+
+    assert (d.combine, d.view_spacing, d.keep_fraction, d.min_ss) == ("geometric", VIEW_STEP_CAP, 0.25, 0.1)
+    keys = ("by", "combine", "weights", "min_ms", "min_ss", "min_es", "view_distance", "distinct_weight")
     want = {k: getattr(SEGMENT_DEFAULTS, k) for k in keys}
-    # SELECTORS["segment"] (what select() and so SelectionConfig.run start from)
+    # SELECTORS["segment"] (what select() and so SelectionConfig.run start from): sized by view change
     assert {k: SELECTORS["segment"][k] for k in keys} == want
-    # SegmentConfig's field defaults (a size must be given; keep_fraction is that size here)
-    seg = SegmentConfig(keep_fraction=SEGMENT_DEFAULTS.keep_fraction)
+    assert SELECTORS["segment"]["spacing_view"] == d.view_spacing and "keep_fraction" not in SELECTORS["segment"]
+    # SegmentConfig's field defaults (a size must be given)
+    seg = SegmentConfig(spacing_view=SEGMENT_DEFAULTS.view_spacing)
     assert {k: getattr(seg, k) for k in keys} == want
-    # SelectionConfig's segment settings (keep_fraction filled in when no size is given)
+    # SelectionConfig's segment settings (the view spacing filled in when no size is given)
     settings = SelectionConfig().segment_settings()
     assert {k: settings[k] for k in keys} == want
+    assert settings["spacing_view"] == d.view_spacing and "keep_fraction" not in settings
     # combined_score's own parameter defaults
     import inspect
 

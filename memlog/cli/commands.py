@@ -470,7 +470,7 @@ def sequence_config(args: argparse.Namespace) -> Any:
     values = setting_values(args, SequenceConfig)
     experimental = setting_values(args, Experimental)
     shaping = [flag.name for cls, given in ((SequenceConfig, values), (Experimental, experimental))
-               for name, flag in setting_flags(cls) if name in given and name not in ("length", "rerank", "hmm")]
+               for name, flag in setting_flags(cls) if name in given and name not in ("length", "rerank", "hmm", "ensemble")]
     if values.get("length") == 0 and shaping:
         raise ConfigError(f"{', '.join(shaping)} set(s) how sequences are matched, but --sequence 0 matches single "
                           "frames")

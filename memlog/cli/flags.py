@@ -216,8 +216,10 @@ def selection_config(args: argparse.Namespace, score: ScoreConfig) -> SelectionC
     where = f"{args.config}: [select]" if getattr(args, "config", None) else "[select]"
     cfg = build(SelectionConfig, file_section(args, "select"), where, base)
     flags = setting_values(args, SelectionConfig)
-    if flags.get("spacing_m") is not None or flags.get("spacing_s") is not None:
-        flags.setdefault("keep_fraction", None)  # a spacing flag replaces a keep fraction from the file
+    sizes = ("keep_fraction", "spacing_view", "spacing_m", "spacing_s")
+    if any(flags.get(k) is not None for k in sizes):
+        for k in sizes:  # a size flag replaces the size the file gives
+            flags.setdefault(k, None)
     cfg = with_flags(SelectionConfig, flags, cfg)
     if cfg.mode == "segment" and any(getattr(args, k, None) is not None for k in ("mt", "st", "et")):
         info("note: --select segment keeps the best frame of each place segment; --mt/--st/--et only set "

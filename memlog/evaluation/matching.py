@@ -58,7 +58,7 @@ class Matching:
             self.info.update({"sequence": self.seq.to_dict(),
                               **{k: sm.info.get(k) for k in ("coordinate", "coordinate_note", "max_gap_s", "stops",
                                                              "standing_rows", "length_used", "map_runs",
-                                                             "rerank", "hmm")}})
+                                                             "rerank", "hmm", "ensemble")}})
         if "fallback" not in self.info and sm.info.get("fallback"):
             self.info["fallback"] = sm.info["fallback"]
             self.info["fallback_reasons"] = sm.info.get("fallback_reasons")

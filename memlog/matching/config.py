@@ -116,6 +116,8 @@ class SequenceConfig:
     (:func:`rerank_by_patches`; ``--no-rerank`` turns it off). ``hmm``: after the re-rank, decide
     each frame's place with its neighbours', as the drive's most likely path through every
     frame's candidate places (:mod:`memlog.matching.drive_hmm`; ``--no-hmm`` turns it off).
+    ``ensemble``: on a small whitened map, average the HMM's place probabilities over several
+    whitened dimensions (:mod:`memlog.matching.ensemble`; ``--no-ensemble`` turns it off).
     """
 
     length: int = setting(10, Flag(
@@ -161,6 +163,11 @@ class SequenceConfig:
         "most likely path through every frame's re-ranked places decides, an HMM over each run; the confidence is "
         "the place's probability minus the best other place's)", "sequence matching", action="store_true",
         dest="no_hmm", value=lambda v: False))
+    ensemble: bool = setting(True, Flag(
+        ("--no-ensemble",), "match the drive once, in the map's whole whitening (default: on a map whitened on fewer "
+        "than 1024 frames, the drive HMM's place probabilities are averaged over the whitening's leading 100, 80, 60 "
+        "and 40 %% of dimensions, which steadies a whitening fitted on few frames)", "sequence matching",
+        action="store_true", dest="no_ensemble", value=lambda v: False))
     experimental: Experimental = setting(default_factory=lambda: Experimental())
 
     def __post_init__(self) -> None:
@@ -190,8 +197,8 @@ class SequenceConfig:
         if isinstance(self.exclude, bool) or not isinstance(self.exclude, (int, float)) or not (
                 math.isfinite(self.exclude) and self.exclude >= 0):
             raise ConfigError(f"exclude must be a number >= 0, got {self.exclude!r}")
-        if not all(isinstance(v, bool) for v in (self.scale_length, self.stops, self.rerank, self.hmm)):
-            raise ConfigError("scale_length, stops, rerank and hmm must be true or false")
+        if not all(isinstance(v, bool) for v in (self.scale_length, self.stops, self.rerank, self.hmm, self.ensemble)):
+            raise ConfigError("scale_length, stops, rerank, hmm and ensemble must be true or false")
         if self.length == 0 and self.causal:
             raise ConfigError("causal needs a sequence: length (--sequence) must be >= 1")
 
@@ -214,7 +221,7 @@ class SequenceConfig:
         ex = asdict(self.experimental)
         order = ("length", "causal", "speeds", "speed_step", "candidates", "coordinate", "path", "max_gap_s",
                  "exclude", "normalize", "block", "scale_length", "stops", "speed_prior", "pairing", "score_norm",
-                 "places", "rerank", "hmm")
+                 "places", "rerank", "hmm", "ensemble")
         return {k: d[k] if k in d else ex[k] for k in order}
 
 

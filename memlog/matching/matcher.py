@@ -16,6 +16,7 @@ from memlog.matching.paths import _run_bounds
 from memlog.matching.rerank import RERANK_PLACES, _patch_plan, _ranked_by, rerank_by_patches
 from memlog.matching.sequences import _median_step, match_sequences
 from memlog.matching.drive_hmm import place_probabilities
+from memlog.matching.ensemble import BELOW, combine, ensemble_dims, leading
 
 if TYPE_CHECKING:
     from memlog.descriptors.approx import IVFIndex
@@ -61,22 +62,39 @@ def match_tables(
     pace = drive_pace(query, reference) if coordinate == "frames" else 1.0
     query, why_not = _patch_plan(cfg, query, reference)
     places = max(k, RERANK_PLACES) if why_not is None else k
-    res = match_sequences(query.descriptors[perm], qc[perm], index.db if index is not None else reference.descriptors,
-                          rc, cfg, k=places, runs=labels[perm], ref_unit=unit, coordinate=coordinate, index=index,
-                          nprobe=nprobe, rerank=rerank, standing=None if standing is None else standing[perm],
-                          ref_mask=None if index is not None else ref_mask, pace=pace)
-    if why_not is None:
+    map_rows = (np.flatnonzero(np.asarray(ref_mask, dtype=bool)) if ref_mask is not None
+                else np.arange(len(reference), dtype=np.int64))
+    q_desc = query.descriptors[perm]
+
+    def run(qd: F32, rd: F32) -> SequenceMatch:
+        """The descriptor stage, the patch re-rank and the drive HMM on descriptors ``qd``, ``rd``."""
+        res = match_sequences(qd, qc[perm], index.db if index is not None else rd, rc, cfg, k=places,
+                              runs=labels[perm], ref_unit=unit, coordinate=coordinate, index=index, nprobe=nprobe,
+                              rerank=rerank, standing=None if standing is None else standing[perm],
+                              ref_mask=None if index is not None else ref_mask, pace=pace)
+        if why_not is not None:
+            return res
         assert query.patches is not None and reference.patches is not None and reference.patch_pca is not None
-        map_rows = (np.flatnonzero(np.asarray(ref_mask, dtype=bool)) if ref_mask is not None
-                    else np.arange(len(reference), dtype=np.int64))
-        res = rerank_by_patches(res, query.descriptors[perm], reference.descriptors, query.patches[perm],
-                                reference.patches, qc[perm], rc, map_rows, labels[perm], cfg, places, unit)
+        res = rerank_by_patches(res, qd, rd, query.patches[perm], reference.patches, qc[perm], rc, map_rows,
+                                labels[perm], cfg, places, unit)
         res.info["rerank"] = {"by": "patches", "places": places, "patch_pca": reference.patch_pca.sha256}
         if cfg.hmm and cfg.enabled:
-            res = _along_drive(res, query.descriptors[perm], reference.descriptors, qc[perm], rc, labels[perm],
-                               _median_step(np.sort(rc[map_rows])), unit, cfg)
+            res = _along_drive(res, qd, rd, qc[perm], rc, labels[perm], _median_step(np.sort(rc[map_rows])), unit,
+                               cfg)
         else:
             res.info["hmm"] = {"off": "turned off (--no-hmm)" if cfg.enabled else "single frames"}
+        return res
+
+    dims, why_alone = _ensemble_plan(cfg, reference, why_not, index)
+    res = run(q_desc, reference.descriptors)
+    if dims:
+        members = [res] + [run(leading(q_desc, d), leading(reference.descriptors, d)) for d in dims[1:]]
+        res = _by_posterior(combine(members, q_desc, reference.descriptors), q_desc, reference.descriptors, rc,
+                            cfg.exclude * unit)
+        res.info["ensemble"] = {"dims": dims}
+    else:
+        res.info["ensemble"] = {"off": why_alone}
+    if why_not is None:
         res = res.top(k)
     else:
         res.info["rerank"] = {"off": why_not}
@@ -112,5 +130,32 @@ def _along_drive(res: SequenceMatch, q_desc: F32, r_desc: F32, qc: F64, rc: F64,
     res.posterior = post[owner]
     res.info = {**res.info, "hmm": {"posterior": "filtered" if cfg.causal else "forward-backward",
                                     "standing_rows": int((owner != np.arange(len(owner))).sum())}}
-    return _ranked_by(res, np.where(res.indices >= 0, res.posterior, -np.inf), q_desc, r_desc, rc,
-                      cfg.exclude * unit)
+    return _by_posterior(res, q_desc, r_desc, rc, cfg.exclude * unit)
+
+
+def _by_posterior(res: SequenceMatch, q_desc: F32, r_desc: F32, rc: F64, excl: float) -> SequenceMatch:
+    """``res`` with each row's places ranked by their probability along the drive (``posterior``),
+    the margin the best place's probability minus the best other place's."""
+    assert res.posterior is not None
+    return _ranked_by(res, np.where(res.indices >= 0, res.posterior, -np.inf), q_desc, r_desc, rc, excl)
+
+
+def _ensemble_plan(cfg: SequenceConfig, reference: DescriptorTable, why_not: str | None,
+                   index: IVFIndex | None) -> tuple[list[int], str | None]:
+    """The whitened dimensions the drive is matched in (:mod:`memlog.matching.ensemble`; empty: once,
+    as it is) and why not when it is matched once."""
+    w = reference.whitening
+    if not cfg.ensemble:
+        return [], "turned off (--no-ensemble)"
+    if why_not is not None or not (cfg.hmm and cfg.enabled):
+        return [], "no drive HMM: the ensemble averages its place probabilities"
+    if w is None:
+        return [], "the map is not whitened"
+    if w.n_fit >= BELOW:
+        return [], f"the map's whitening was fitted on {w.n_fit} frames (>= {BELOW}: a steady estimate)"
+    if index is not None:
+        return [], "approximate search: its index holds the whole whitening only"
+    dims = ensemble_dims(w)
+    if len(dims) < 2:
+        return [], f"the map is whitened to {w.dim_out} dimensions: too few to cut"
+    return dims, None

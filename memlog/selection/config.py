@@ -33,9 +33,10 @@ class SelectionConfig:
 
     ``mode``: ``"segment"`` (default: the best frame of each place segment) or ``"paper"`` (the
     tri-threshold rule). ``keep_fraction``: paper mode calibrates the thresholds to keep this
-    fraction; segment mode makes this fraction of the frames segments (default 0.25 when no
-    spacing is given). ``mt``/``st``/``et``: the paper rule's fixed thresholds (the scoring
-    config's). ``spacing_m``/``spacing_s``: segment mode, one frame per metres / seconds.
+    fraction; segment mode makes this fraction of the frames segments. ``spacing_view``: segment
+    mode, one frame per this much view change (the default size when none is given:
+    ``SEGMENT_DEFAULTS.view_spacing``). ``mt``/``st``/``et``: the paper rule's fixed thresholds
+    (the scoring config's). ``spacing_m``/``spacing_s``: segment mode, one frame per metres / seconds.
     ``segment_by``: how segments are cut. ``dedup``: drop a kept frame within this cosine
     distance of an already kept one (descriptor: the thumbnail). ``min_ss``/``min_ms``/``min_es``,
     ``weights``, ``combine``, ``still_distance``, ``centre_tolerance`` (the ``--candidates`` shortlist's
@@ -55,11 +56,17 @@ class SelectionConfig:
         ("--select",), "segment (default): the best frame of each place segment by the three scores, so no stretch "
         "of the drive is lost; paper: the frames passing MT/ST/ET", choices=("paper", "segment"), dest="select"))
     keep_fraction: float | None = setting(None, Flag(
-        ("--keep-fraction",), "keep about this fraction of the frames: segment size (segment, default 0.25) or "
-        "thresholds (paper)", check=a_fraction, metavar="F"))
+        ("--keep-fraction",), "keep about this fraction of the frames: segment size (segment) or thresholds "
+        "(paper). Default (segment): sized by the drive's view change, see --spacing-view", check=a_fraction,
+        metavar="F"))
     mt: float = 0.5
     st: float = 0.6
     et: float = 0.4
+    spacing_view: float | None = setting(None, Flag(
+        ("--spacing-view",), "segment: one frame per this much view change (capped chords of the 32x16 view "
+        f"vectors, stops left out; the default size, {SEGMENT_DEFAULTS.view_spacing:g}: a frame per step that "
+        "changed the whole view, so a sparse route keeps every moving frame and a video one frame per several)",
+        "selection", positive_float, metavar="V"))
     spacing_m: float | None = setting(None, Flag(("--spacing-m",), "segment: one frame per this many metres "
                                                  "travelled", "selection", positive_float, metavar="M"))
     spacing_s: float | None = setting(None, Flag(("--spacing-s",), "segment: one frame per this many seconds",
@@ -97,17 +104,17 @@ class SelectionConfig:
             v = finite_number(name, getattr(self, name))
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"{name} must be within [0, 1], got {v}")
-        for name in ("spacing_m", "spacing_s"):
+        for name in ("spacing_view", "spacing_m", "spacing_s"):
             if getattr(self, name) is not None:
                 positive_number(name, getattr(self, name))
-        seg_only = [k for k in ("spacing_m", "spacing_s") if getattr(self, k) is not None]
+        seg_only = [k for k in ("spacing_view", "spacing_m", "spacing_s") if getattr(self, k) is not None]
         if self.segment_by != "auto":
             seg_only.append("segment_by")
         if seg_only and self.mode != "segment":
             raise ConfigError(f"{', '.join(seg_only)} need the segment selection mode")
-        sizes = [k for k in ("keep_fraction", "spacing_m", "spacing_s") if getattr(self, k) is not None]
+        sizes = [k for k in ("keep_fraction", "spacing_view", "spacing_m", "spacing_s") if getattr(self, k) is not None]
         if len(sizes) > 1:
-            raise ConfigError(f"give one of keep_fraction, spacing_m, spacing_s (got {', '.join(sizes)})")
+            raise ConfigError(f"give one of keep_fraction, spacing_view, spacing_m, spacing_s (got {', '.join(sizes)})")
         if self.view_distance is not None and (self.segment_by != "view" or sizes):
             raise ConfigError("view_distance sizes segments by view change: it needs segment_by='view' and no "
                               "keep_fraction or spacing")
@@ -180,12 +187,14 @@ class SelectionConfig:
         }
         if self.keep_fraction is not None:
             kw["keep_fraction"] = self.keep_fraction
+        elif self.spacing_view is not None:
+            kw["spacing_view"] = self.spacing_view
         elif self.spacing_m is not None:
             kw["spacing_m"] = self.spacing_m
         elif self.spacing_s is not None:
             kw["spacing_s"] = self.spacing_s
         elif self.view_distance is None or self.segment_by != "view":
-            kw["keep_fraction"] = SEGMENT_DEFAULTS.keep_fraction
+            kw["spacing_view"] = SEGMENT_DEFAULTS.view_spacing
         SegmentConfig(**kw)
         return kw
 

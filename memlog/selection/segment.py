@@ -91,6 +91,7 @@ stretches without a frame and cost recall.
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import asdict, dataclass
 from collections.abc import Sequence
@@ -132,10 +133,13 @@ class SegmentDefaults:
     The one source: :class:`SegmentConfig`, :func:`combined_score`, :func:`select_segments` without
     a config, ``SELECTORS["segment"]`` (:mod:`memlog.selection.selectors`) and
     :class:`~memlog.selection.config.SelectionConfig` all read :data:`SEGMENT_DEFAULTS`.
-    ``keep_fraction`` is the size used when no spacing is given.
+    ``view_spacing`` is the size used when no size is given (one segment per this much view
+    change, :data:`VIEW_STEP_CAP`: a step of the drive that changed the whole view), and
+    ``keep_fraction`` the size then when the table has no view vectors.
     """
 
     by: SegmentBy = "auto"
+    view_spacing: float = VIEW_STEP_CAP
     keep_fraction: float = 0.25
     view_distance: float = 0.3
     still_distance: float = STILL_DISTANCE
@@ -151,6 +155,13 @@ class SegmentDefaults:
         """The defaults as a plain dict (``weights`` a tuple), in field order."""
         return asdict(self)
 
+    def config_dict(self) -> dict[str, Any]:
+        """The defaults as :class:`SegmentConfig`'s keywords: sized by view change (``spacing_view``)."""
+        d = self.to_dict()
+        d["spacing_view"] = d.pop("view_spacing")
+        d.pop("keep_fraction")
+        return d
+
 
 #: The segment defaults every entry point reads (see :class:`SegmentDefaults`).
 SEGMENT_DEFAULTS = SegmentDefaults()
@@ -159,8 +170,14 @@ SEGMENT_DEFAULTS = SegmentDefaults()
 @dataclass(frozen=True)
 class SegmentConfig:
     """Settings of :func:`select_segments` (set exactly one of ``keep_fraction``,
-    ``spacing_m``, ``spacing_s``, ``spacing_frames``; ``by="view"``: ``keep_fraction``, or
-    none and ``view_distance``).
+    ``spacing_view``, ``spacing_m``, ``spacing_s``, ``spacing_frames``; ``by="view"``:
+    ``keep_fraction`` or ``spacing_view``, or none and ``view_distance``).
+
+    ``spacing_view``: as many segments as the drive's view change (stops left out, each step's
+    chord capped at :data:`VIEW_STEP_CAP`) holds this spacing, ``S = ceil(view change /
+    spacing_view)`` (at most one per frame), cut along ``by`` like ``keep_fraction``'s ``S``: the
+    map's size follows how much the drive saw, not how many frames it recorded. A table without
+    view vectors falls back to ``SEGMENT_DEFAULTS.keep_fraction`` (``info["size_note"]``).
 
     ``shortlist=K`` (``memlog map --candidates K``): a segment keeps the best of only K
     candidates, the best of each of K equal parts of it by the score's upper bound before MS is
@@ -176,6 +193,7 @@ class SegmentConfig:
 
     by: SegmentBy = SEGMENT_DEFAULTS.by
     keep_fraction: float | None = None
+    spacing_view: float | None = None
     spacing_m: float | None = None
     spacing_s: float | None = None
     spacing_frames: int | None = None
@@ -202,26 +220,28 @@ class SegmentConfig:
             raise ConfigError(f"segment combine must be one of {_COMBINE}, got {self.combine!r}")
         sizes = {
             k: getattr(self, k)
-            for k in ("keep_fraction", "spacing_m", "spacing_s", "spacing_frames")
+            for k in ("keep_fraction", "spacing_view", "spacing_m", "spacing_s", "spacing_frames")
             if getattr(self, k) is not None
         }
         v = finite_number("still_distance", self.still_distance)
         if not 0.0 <= v < 2.0:
             raise ConfigError(f"still_distance must be in [0, 2), got {self.still_distance!r}")
-        if self.by == "view" and set(sizes) - {"keep_fraction"}:
-            raise ConfigError(f"segment by='view' is sized by keep_fraction (or view_distance); unset "
-                              f"{sorted(set(sizes) - {'keep_fraction'})}")
+        if self.by == "view" and set(sizes) - {"keep_fraction", "spacing_view"}:
+            raise ConfigError(f"segment by='view' is sized by keep_fraction or spacing_view (or view_distance); "
+                              f"unset {sorted(set(sizes) - {'keep_fraction', 'spacing_view'})}")
         if self.by == "view" and not sizes:
             v = finite_number("view_distance", self.view_distance)
             if not 0.0 < v <= 2.0:
                 raise ConfigError(f"view_distance must be in (0, 2], got {self.view_distance!r}")
         elif len(sizes) != 1:
             raise ConfigError(
-                "segment selection needs exactly one of keep_fraction, spacing_m, spacing_s, "
+                "segment selection needs exactly one of keep_fraction, spacing_view, spacing_m, spacing_s, "
                 f"spacing_frames; got {sorted(sizes) or 'none'}"
             )
         if self.keep_fraction is not None:
             fraction("keep_fraction", self.keep_fraction)
+        if self.spacing_view is not None:
+            positive_number("spacing_view", self.spacing_view)
         implied = {"spacing_m": "distance", "spacing_s": "time", "spacing_frames": "count"}
         for key, by in implied.items():
             if getattr(self, key) is None:
@@ -332,7 +352,7 @@ def _segment_by(table: ScoreTable, config: SegmentConfig) -> str:
                 "time" if table.t_ns[-1] > table.t_ns[0] else "count")
     if by == "distance" and table.positions is None:
         raise ConfigError("segment by='distance' needs positions, but the score table has none")
-    anchored = by == "view" and config.keep_fraction is None
+    anchored = by == "view" and config.keep_fraction is None and config.spacing_view is None
     if anchored and table.descriptors is None and table.view is None:
         raise ConfigError("segment by='view' with view_distance needs view vectors or descriptors, but the score "
                           "table has neither")
@@ -381,18 +401,43 @@ def _bins(table: ScoreTable, config: SegmentConfig, by: str, still: NDArray[np.b
         if width == 0.0:
             info["note"] = "the robot did not move (path length 0 m): one segment"
         info["spacing_m"] = width
-    elif config.keep_fraction is None:  # anchored view segments
+    elif n_seg is None:  # anchored view segments
         raw = anchored_view_segments(table, config.view_distance)
         info["view_distance"] = config.view_distance
     else:  # view change
-        assert table.view is not None
-        c = np.cumsum(view_step_length(np.nan_to_num(moving_view_steps(table.view, still), nan=0.0)))
+        c = _view_change(table, still)
         raw, width = bin_along(c, None, n_seg)
         along = c
         info["view_change"] = float(c[-1])
         if width == 0.0:
             info["note"] = "the view never changed: one segment"
     return raw, along, width, in_gap
+
+
+def _view_change(table: ScoreTable, still: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """The drive's view change up to each row (capped chords, stops left out)."""
+    assert table.view is not None
+    out: NDArray[np.float64] = np.cumsum(view_step_length(np.nan_to_num(moving_view_steps(table.view, still),
+                                                                          nan=0.0)))
+    return out
+
+
+def _n_segments(table: ScoreTable, config: SegmentConfig, still: NDArray[np.bool_], info: dict[str, Any]
+                ) -> int | None:
+    """How many segments the drive is cut into when its size is a count (``keep_fraction``, or
+    ``spacing_view``: from the drive's view change); None when a spacing along ``by`` sizes it."""
+    n = table.n
+    frac = config.keep_fraction
+    if config.spacing_view is not None:
+        if table.view is not None:
+            total = float(_view_change(table, still)[-1])
+            info["spacing_view"] = config.spacing_view
+            info["view_change"] = total
+            return max(1, min(n, math.ceil(total / config.spacing_view - 1e-9)))
+        frac = SEGMENT_DEFAULTS.keep_fraction
+        info["size_note"] = (f"the table has no view vectors: {frac:g} of the frames instead of one per "
+                             f"{config.spacing_view:g} of view change")
+    return max(1, int(np.floor(frac * n + 0.5))) if frac is not None else None
 
 
 def cut_segments(table: ScoreTable, config: SegmentConfig
@@ -413,11 +458,7 @@ def cut_segments(table: ScoreTable, config: SegmentConfig
         info["still_frames"] = int(still.sum())
     if stops.source in MOTION_KINDS:
         info["stops_from"] = {"source": stops.source, "topic": stops.topic}
-    n_seg = (
-        max(1, int(np.floor(config.keep_fraction * n + 0.5)))
-        if config.keep_fraction is not None
-        else None
-    )
+    n_seg = _n_segments(table, config, still, info)
     raw, along, width, in_gap = _bins(table, config, by, still, n_seg, info)
     if along is not None:
         # in segment lengths, within the row's own bin (the last bin holds the end of the drive);
@@ -499,7 +540,7 @@ def select_segments(table: ScoreTable, config: SegmentConfig | None = None) -> S
     """Keep the best frame (by :func:`combined_score`) of each place segment among those
     passing the minimum thresholds; segments with no passing frame become gaps. Without a
     config: :data:`SEGMENT_DEFAULTS` (``keep_fraction`` 0.25)."""
-    cfg = config if config is not None else SegmentConfig(keep_fraction=SEGMENT_DEFAULTS.keep_fraction)
+    cfg = config if config is not None else SegmentConfig(spacing_view=SEGMENT_DEFAULTS.view_spacing)
     n = table.n
     seg, coord, info = cut_segments(table, cfg)
     code = first_failing(table, cfg.min_ms, cfg.min_ss, cfg.min_es)

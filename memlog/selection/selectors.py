@@ -20,7 +20,7 @@ SELECTORS: dict[str, dict[str, Any]] = {
     "paper": {"mt": 0.5, "st": 0.6, "et": 0.4},
     "calibrated": {"keep_fraction": 0.1},
     # memlog.selection.segment.SEGMENT_DEFAULTS: the one source (chosen on the shared Nordland slice)
-    "segment": SEGMENT_DEFAULTS.to_dict(),
+    "segment": SEGMENT_DEFAULTS.config_dict(),
 }
 
 _RUNNERS: dict[str, tuple[type[Any], Callable[[ScoreTable, Any], Selection]]] = {
@@ -29,7 +29,7 @@ _RUNNERS: dict[str, tuple[type[Any], Callable[[ScoreTable, Any], Selection]]] = 
     "segment": (SegmentConfig, select_segments),
 }
 
-_SIZE_KEYS = ("spacing_m", "spacing_s", "spacing_frames")
+_SIZE_KEYS = ("keep_fraction", "spacing_view", "spacing_m", "spacing_s", "spacing_frames")
 
 
 def select(
@@ -42,9 +42,10 @@ def select(
     """Run the selector ``name`` with ``SELECTORS[name]`` updated by ``overrides``; then,
     if ``dedup`` is given, drop near-duplicates (:func:`drop_duplicates`).
 
-    For "segment", giving a spacing (``spacing_m``/``spacing_s``/``spacing_frames``), or
-    ``view_distance`` with ``by="view"`` (segments of a fixed view change from their first frame),
-    replaces the default ``keep_fraction``.
+    For "segment", giving a size (``keep_fraction``, ``spacing_view``/``spacing_m``/``spacing_s``/
+    ``spacing_frames``), or ``view_distance`` with ``by="view"`` (segments of a fixed view change
+    from their first frame), replaces the default size (``spacing_view``: one frame per
+    ``SEGMENT_DEFAULTS.view_spacing`` of view change).
     """
     if name not in _RUNNERS:
         raise ConfigError(f"unknown selector {name!r}; choose one of {sorted(_RUNNERS)}")
@@ -54,10 +55,10 @@ def select(
     unknown = sorted(set(overrides) - valid)
     if unknown:
         raise ConfigError(f"unknown setting(s) {unknown} for selector {name!r}; valid: {sorted(valid)}")
-    if name == "segment" and "keep_fraction" not in overrides:
+    if name == "segment" and "spacing_view" not in overrides:
         if any(overrides.get(k) is not None for k in _SIZE_KEYS) or (
                 overrides.get("by") == "view" and "view_distance" in overrides):
-            settings.pop("keep_fraction", None)
+            settings.pop("spacing_view", None)
     settings.update(overrides)
     if "weights" in settings and settings["weights"] is not None:
         settings["weights"] = tuple(settings["weights"])

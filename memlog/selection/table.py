@@ -313,9 +313,10 @@ class Selection:
 
     def shortfall(self) -> str | None:
         """Why a segment selection kept fewer frames than its keep fraction asks (some segments
-        hold no frame: a stop is one place), or None when it kept as many as asked."""
+        hold no frame: a stop is one place), or None when it kept as many as asked or its size
+        came from the drive's view change (``spacing_view``: no fraction was asked)."""
         asked, made = self.info.get("n_bins"), self.info.get("n_segments")
-        if asked is None or made is None or made >= asked:
+        if asked is None or made is None or made >= asked or "spacing_view" in self.info:
             return None
         still = self.info.get("still_frames") or 0
         return (f"fewer frames than --keep-fraction asks: {made} of the {asked} segments hold a frame"

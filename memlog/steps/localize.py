@@ -250,7 +250,7 @@ def _sequence_record(found: dict[str, Any], cfg: SequenceConfig) -> dict[str, An
     (coordinate, speeds searched, the reference's frame spacing) and the fallback, if any."""
     keys = ("coordinate", "coordinate_note", "length_used", "speeds", "speed_step", "n_speeds", "speed_prior", "unit",
             "runs", "max_gap_s", "sequence_queries", "single_queries", "fallback", "fallback_reasons", "stops",
-            "standing_rows", "rerank", "hmm")
+            "standing_rows", "rerank", "hmm", "ensemble")
     out = {"asked": cfg.to_dict(), "length": cfg.length, "mode": "causal" if cfg.causal else "offline",
            "candidates": cfg.candidates, "path": cfg.experimental.path, **{k: found.get(k) for k in keys}}
     if not cfg.enabled:
