@@ -202,6 +202,12 @@ BENCHES: list[Bench] = [
           "localize` matches it), with and without the whitening ensemble: the Stromovka pair, the Stromovka drive pair "
           "with stops, crawls and fast stretches, and Nordland; half maps and memlog's default size",
           20, ("shared", "models"), defaults_anchor="drives-as-cameras-record-them"),
+    Bench("whitening_spread",
+          ("python", "benchmarks/whitening_spread.py", "--cache", "{work}/matcher-defaults"),
+          "how far a map's R@1 moves with the frames its whitening is fitted on (8 refits on 85 % samples of the map's "
+          "own frames), matched once and with the whitening ensemble: the Stromovka pairs, full, default, half and "
+          "quarter maps",
+          10, ("shared", "models"), defaults_anchor="the-whitening-ensemble"),
     Bench("drive_maps",
           ("python", "benchmarks/drive_maps.py", "--scores", "{scores}", "--cache", "{work}/drive-maps"),
           "maps of Nordland drive variants that stop, crawl and speed up: memlog's map against every k-th frame and "
@@ -310,6 +316,7 @@ TITLES = {
     "matcher_defaults": "the drive matcher's defaults",
     "rerank_table": "patch re-ranking",
     "drive_pair": "maps of every size on drives as cameras record them",
+    "whitening_spread": "a map's R@1 over refitted whitenings; the whitening ensemble",
     "drive_maps": "maps of drives that stop, crawl and speed up",
     "selection_table": "selection modes against baselines",
     "shortlist_table": "`--candidates K` shortlists",

@@ -17,6 +17,7 @@ What is checked against independent expectations:
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -60,9 +61,15 @@ def test_map_then_localize_runs_at_camera_resolution(stromovka: dict[str, Path])
     m = read_descriptors(stromovka["parquet"])
     meta = m.meta
     assert meta.kind.startswith("dinov2"), meta  # what any real camera gets
-    # the whitening is fitted on the kept frames: 25 here, under the 32 a fit needs, and the map says so
-    assert len(m) == 25 and m.whitening is None and not meta.whitening
-    assert _map_record(stromovka["map"])["whitening"] == {"skipped": "fewer than 32 kept frames described; not whitened"}
+    # the default size follows the drive's view change: one frame per 0.5 of it; Stromovka's frames are
+    # metres apart (every step changes the whole view), so about every frame is kept
+    rec = _map_record(stromovka["map"])
+    info = next(iter(json.loads(str(rec["selection"])).values()))["info"]
+    assert info["spacing_view"] == 0.5 and len(m) == info["n_segments"] == math.ceil(info["view_change"] / 0.5 - 1e-9)
+    assert len(m) >= 95
+    # the whitening is fitted on the kept frames (half as many dimensions), and the map says so
+    assert m.whitening is not None and m.whitening.n_fit == len(m) and m.whitening.dim_out == len(m) // 2
+    assert rec["whitening"]["n_fit"] == len(m) and meta.whitening == m.whitening.sha256
     # the map stores the re-rank's patch features, projected by a PCA fitted on its own frames
     assert m.patches is not None and m.patch_pca is not None and m.patches.shape == (len(m), 64, m.patch_pca.dim)
     rows = pq.read_table(stromovka["matches"]).to_pydict()
@@ -72,6 +79,10 @@ def test_map_then_localize_runs_at_camera_resolution(stromovka: dict[str, Path])
     # along the drive (best first), the confidence its margin
     assert seq["rerank"]["by"] == "patches" and seq["rerank"]["patch_pca"] == m.patch_pca.sha256
     assert seq["hmm"]["posterior"] == "forward-backward"
+    # a map whitened on fewer than 1024 frames: the HMM averaged over the whitening's leading dimensions
+    from memlog.matching.ensemble import ensemble_dims
+
+    assert seq["ensemble"] == {"dims": ensemble_dims(m.whitening)} and len(seq["ensemble"]["dims"]) == 4
     by_query: dict[int, list[tuple[int, float]]] = {}
     for q, k, s in zip(rows["query_id"], rows["rank"], rows["place_probability"]):
         by_query.setdefault(q, []).append((k, s))
@@ -128,6 +139,22 @@ def test_the_annotated_query_log_opens_in_mcap_and_rosbags(stromovka: dict[str, 
             ar.deserialize(raw, conn.msgtype)
             counts[conn.topic] = counts.get(conn.topic, 0) + 1
     assert counts["/camera/image_raw/compressed"] == 101 and counts[topic] == 101
+
+
+def test_a_map_too_small_to_whiten_says_so(stromovka: dict[str, Path], tmp_path: Path) -> None:
+    """A quarter of Stromovka (25 frames) is under the 32 a whitening fit needs: the map is not
+    whitened, says so, and localize matches it once (nothing to average)."""
+    from memlog.outputs.descriptor_table import read_descriptors
+
+    small = tmp_path / "q.mcap"
+    assert main(["-q", "map", str(stromovka["autumn"]), "-o", str(small), "--keep-fraction", "0.25"]) == 0
+    m = read_descriptors(small.with_suffix(".parquet"))
+    assert len(m) == 25 and m.whitening is None and not m.meta.whitening
+    assert _map_record(small)["whitening"] == {"skipped": "fewer than 32 kept frames described; not whitened"}
+    assert main(["-q", "localize", str(small.with_suffix(".parquet")), str(stromovka["winter"]), "-o",
+                 str(tmp_path / "x.parquet")]) == 0
+    seq = json.loads(pq.read_table(tmp_path / "x.parquet").schema.metadata[b"memlog.sequence"])
+    assert seq["ensemble"] == {"off": "the map is not whitened"}
 
 
 def test_localize_refuses_the_parquet_of_another_map(stromovka: dict[str, Path], tmp_path: Path) -> None:

@@ -276,8 +276,8 @@ def independent() -> _Independent:
     return _Independent()
 
 
-# demo's drive: the camera frames lie at 0, 5, 10, 15, 15, 15, 20, 25 m (a stop at 15 m), so the
-# default 0.25 of 8 frames is 2 segments of 12.5 m each: frames 0-2 and 3-7
+# demo's drive: the camera frames lie at 0, 5, 10, 15, 15, 15, 20, 25 m (a stop at 15 m), so a quarter of
+# 8 frames is 2 segments of 12.5 m each: frames 0-2 and 3-7
 DEMO_SEGMENTS = [0, 0, 0, 1, 1, 1, 1, 1]
 
 
@@ -340,11 +340,13 @@ def test_default_map_keeps_the_best_cheap_bound_of_each_segment(tmp_path: Path, 
     among the frames passing the minimum scores. ResMem does not run (its MS would choose nothing):
     the record holds MS's bounds. With ``score_kept`` the same frames carry ResMem's exact MS, and
     ResMem ran on those frames only."""
-    sel = MapConfig().select
+    # the size is fixed here (a quarter: DEMO_SEGMENTS) so the segments can be cut from the scores alone;
+    # the default size by view change is tested in tests/test_drive_selection.py
+    sel = SelectionConfig(keep_fraction=0.25)
     assert MapConfig().candidates == 1 and not MapConfig().score_kept  # the defaults this test is about
-    default = make_map(DEMO, tmp_path / "default.mcap")
+    default = make_map(DEMO, tmp_path / "default.mcap", MapConfig(select=sel))
     assert default.crops_run == 0
-    res = make_map(DEMO, tmp_path / "map.mcap", MapConfig(score_kept=True))
+    res = make_map(DEMO, tmp_path / "map.mcap", MapConfig(select=sel, score_kept=True))
     assert {t: s.kept_indices.tolist() for t, s in default.selections.items()} == {
         t: s.kept_indices.tolist() for t, s in res.selections.items()}
     unscored = read_scores(tmp_path / "default.mcap")

@@ -48,7 +48,7 @@ from collections.abc import Callable, Hashable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from multiprocessing.context import BaseContext
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar, cast
 
 import numpy as np
 
@@ -68,6 +68,24 @@ START_METHOD = "spawn"
 def mp_context() -> BaseContext:
     """The multiprocessing context of memlog's local worker processes (:data:`START_METHOD`)."""
     return multiprocessing.get_context(START_METHOD)
+
+
+class _TrackedContext:
+    """A multiprocessing context that remembers the processes it starts (a pool's workers), so that a
+    pool that lost a worker can stop the others itself: CPython 3.11's ``shutdown`` of a broken pool
+    may wait for ever on a worker that survived."""
+
+    def __init__(self, base: BaseContext) -> None:
+        self._base: Any = base
+        self.started: list[Any] = []
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._base, name)
+
+    def Process(self, *args: Any, **kwargs: Any) -> Any:  # noqa: N802 (the context's own name)
+        proc = self._base.Process(*args, **kwargs)
+        self.started.append(proc)
+        return proc
 
 
 class Executor(Protocol):
@@ -248,8 +266,9 @@ class Processes:
         self._broken = False
         self._closed = False
         given = runtime if runtime is not None else current()
-        self._pool = ProcessPoolExecutor(workers, mp_context=mp_context(), initializer=_start_worker,
-                                         initargs=(given, worker_setup, quiet, log_levels()))
+        self._context = _TrackedContext(mp_context())
+        self._pool = ProcessPoolExecutor(workers, mp_context=cast(BaseContext, self._context),
+                                         initializer=_start_worker, initargs=(given, worker_setup, quiet, log_levels()))
 
     def _watch(self, f: Future[Any]) -> None:
         """A job's future is done: a pool that lost a worker fails its jobs with ``BrokenProcessPool``
@@ -305,7 +324,13 @@ class Processes:
         return self._broken
 
     def close(self) -> None:
+        """Wait for the workers to finish and stop them; a pool that lost a worker stops the others
+        first (its jobs have failed already, and waiting for them could hang)."""
         self._closed = True
+        if self._broken:
+            for proc in self._context.started:
+                if proc.is_alive():
+                    proc.kill()
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
