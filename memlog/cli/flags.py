@@ -14,7 +14,7 @@ from memlog.errors import ConfigError
 from memlog.io.base import FrameWindow
 from memlog.progress import info
 from memlog.scoring.config import ScoreConfig, load_config
-from memlog.selection.config import SelectionConfig
+from memlog.selection.config import SIZES, SelectionConfig
 from memlog.settings import (
     count_or_all,
     cosine_distance,
@@ -216,9 +216,8 @@ def selection_config(args: argparse.Namespace, score: ScoreConfig) -> SelectionC
     where = f"{args.config}: [select]" if getattr(args, "config", None) else "[select]"
     cfg = build(SelectionConfig, file_section(args, "select"), where, base)
     flags = setting_values(args, SelectionConfig)
-    sizes = ("keep_fraction", "spacing_view", "spacing_m", "spacing_s")
-    if any(flags.get(k) is not None for k in sizes):
-        for k in sizes:  # a size flag replaces the size the file gives
+    if any(flags.get(k) is not None for k in SIZES):
+        for k in SIZES:  # a size flag replaces the size the file gives
             flags.setdefault(k, None)
     cfg = with_flags(SelectionConfig, flags, cfg)
     if cfg.mode == "segment" and any(getattr(args, k, None) is not None for k in ("mt", "st", "et")):

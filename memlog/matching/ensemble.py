@@ -20,8 +20,8 @@ and the drive HMM once per dimension of :func:`ensemble_dims` (the whitening's
 mean probability.
 
 **When.** Only where the drive HMM decides (a map with patch features), the map is whitened, its
-whitening was fitted on fewer than :data:`BELOW` frames (the matching costs one run per member;
-a larger fit is a steadier estimate), and the search is exact. ``--no-ensemble`` turns it off;
+whitening was fitted on fewer than :data:`BELOW` frames (each member runs the descriptor stage,
+the re-rank and the HMM, sharing the re-rank's pair scores; a larger fit is a steadier estimate), and the search is exact. ``--no-ensemble`` turns it off;
 ``info["ensemble"]`` records the dimensions, or why it did not run.
 """
 

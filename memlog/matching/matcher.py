@@ -13,7 +13,7 @@ from memlog.descriptors.table import DescriptorTable
 from memlog.matching.config import F32, F64, I64, SequenceConfig, SequenceMatch
 from memlog.matching.coordinates import _topic_groups, drive_coordinates, drive_pace, drive_runs, reference_unit, resolve_coordinate, standing_rows, uses_stops
 from memlog.matching.paths import _run_bounds
-from memlog.matching.rerank import RERANK_PLACES, _patch_plan, _ranked_by, rerank_by_patches
+from memlog.matching.rerank import RERANK_PLACES, PairScores, _patch_plan, _ranked_by, rerank_by_patches
 from memlog.matching.sequences import _median_step, match_sequences
 from memlog.matching.drive_hmm import place_probabilities
 from memlog.matching.ensemble import BELOW, combine, ensemble_dims, leading
@@ -64,23 +64,28 @@ def match_tables(
     places = max(k, RERANK_PLACES) if why_not is None else k
     map_rows = (np.flatnonzero(np.asarray(ref_mask, dtype=bool)) if ref_mask is not None
                 else np.arange(len(reference), dtype=np.int64))
-    q_desc = query.descriptors[perm]
+    # what every run shares (the whitening ensemble matches the drive once per member)
+    q_desc, q_c, q_runs = query.descriptors[perm], qc[perm], labels[perm]
+    q_standing = None if standing is None else standing[perm]
+    pairs, spacing = None, 0.0
+    if why_not is None:  # the re-rank's pair scores (each computed once) and the HMM's map spacing
+        assert query.patches is not None and reference.patches is not None and reference.patch_pca is not None
+        pairs = PairScores(query.patches[perm], reference.patches)
+        spacing = _median_step(np.sort(rc[map_rows]))
 
     def run(qd: F32, rd: F32) -> SequenceMatch:
         """The descriptor stage, the patch re-rank and the drive HMM on descriptors ``qd``, ``rd``."""
-        res = match_sequences(qd, qc[perm], index.db if index is not None else rd, rc, cfg, k=places,
-                              runs=labels[perm], ref_unit=unit, coordinate=coordinate, index=index, nprobe=nprobe,
-                              rerank=rerank, standing=None if standing is None else standing[perm],
-                              ref_mask=None if index is not None else ref_mask, pace=pace)
-        if why_not is not None:
+        res = match_sequences(qd, q_c, index.db if index is not None else rd, rc, cfg, k=places, runs=q_runs,
+                              ref_unit=unit, coordinate=coordinate, index=index, nprobe=nprobe, rerank=rerank,
+                              standing=q_standing, ref_mask=None if index is not None else ref_mask, pace=pace)
+        if pairs is None:
             return res
-        assert query.patches is not None and reference.patches is not None and reference.patch_pca is not None
-        res = rerank_by_patches(res, qd, rd, query.patches[perm], reference.patches, qc[perm], rc, map_rows,
-                                labels[perm], cfg, places, unit)
+        assert reference.patch_pca is not None
+        res = rerank_by_patches(res, qd, rd, pairs.q_patches, pairs.r_patches, q_c, rc, map_rows, q_runs, cfg,
+                                places, unit, pairs=pairs)
         res.info["rerank"] = {"by": "patches", "places": places, "patch_pca": reference.patch_pca.sha256}
         if cfg.hmm and cfg.enabled:
-            res = _along_drive(res, qd, rd, qc[perm], rc, labels[perm], _median_step(np.sort(rc[map_rows])), unit,
-                               cfg)
+            res = _along_drive(res, qd, rd, q_c, rc, q_runs, spacing, unit, cfg)
         else:
             res.info["hmm"] = {"off": "turned off (--no-hmm)" if cfg.enabled else "single frames"}
         return res

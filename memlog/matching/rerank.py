@@ -16,7 +16,7 @@ from memlog.matching.coordinates import _nearest
 from memlog.matching.paths import _run_bounds
 from memlog.matching.sequences import _median_step, _ratio
 
-__all__ = ["rerank_by_patches", "RERANK_PLACES", "RERANK_BLOCK"]
+__all__ = ["rerank_by_patches", "PairScores", "RERANK_PLACES", "RERANK_BLOCK"]
 
 
 
@@ -40,9 +40,39 @@ def _patch_plan(cfg: SequenceConfig, query: DescriptorTable, reference: Descript
     return query, None
 
 
+class PairScores:
+    """:func:`~memlog.descriptors.patches.pair_scores` of one query's patches against one map's, each
+    pair computed once however often it is asked for (the whitening ensemble's members re-rank
+    mostly the same pairs: :mod:`memlog.matching.ensemble`)."""
+
+    def __init__(self, q_patches: npt.NDArray[Any], r_patches: npt.NDArray[Any]) -> None:
+        self.q_patches = q_patches
+        self.r_patches = r_patches
+        self._width = max(1, len(r_patches))
+        self._keys = np.zeros(0, np.int64)  # sorted (query row * width + map row)
+        self._scores = np.zeros(0, np.int64)
+
+    def __call__(self, q_rows: I64, r_rows: I64) -> I64:
+        """The score of each pair ``(q_rows[n], r_rows[n])``."""
+        from memlog.descriptors.patches import pair_scores
+
+        key = np.asarray(q_rows, dtype=np.int64) * self._width + np.asarray(r_rows, dtype=np.int64)
+        out = np.empty(len(key), dtype=np.int64)
+        pos = np.minimum(np.searchsorted(self._keys, key), max(0, len(self._keys) - 1))
+        known = self._keys[pos] == key if len(self._keys) else np.zeros(len(key), dtype=bool)
+        out[known] = self._scores[pos[known]]
+        new = ~known
+        if new.any():
+            out[new] = pair_scores(self.q_patches, self.r_patches, key[new] // self._width, key[new] % self._width)
+            keys = np.concatenate([self._keys, key[new]])
+            order = np.argsort(keys, kind="stable")
+            self._keys, self._scores = keys[order], np.concatenate([self._scores, out[new]])[order]
+        return out
+
+
 def rerank_by_patches(res: SequenceMatch, q_desc: F32, r_desc: F32, q_patches: npt.NDArray[Any],
                       r_patches: npt.NDArray[Any], qc: F64, rc: F64, map_rows: I64, labels: I64,
-                      cfg: SequenceConfig, k: int, unit: float) -> SequenceMatch:
+                      cfg: SequenceConfig, k: int, unit: float, pairs: PairScores | None = None) -> SequenceMatch:
     """Re-rank each query's places by patch features (:mod:`memlog.descriptors.patches`).
 
     A place's patch score is the mean :func:`~memlog.descriptors.patches.pair_scores` of the
@@ -51,10 +81,10 @@ def rerank_by_patches(res: SequenceMatch, q_desc: F32, r_desc: F32, q_patches: n
     by it (ties keep their order), the ``k`` best kept; ``margin`` and the confidence become the
     best patch score minus the best of another place (one scale for every row), ``ratio`` is
     taken to the new second place. ``rc``: every reference row's coordinate; ``map_rows``: the
-    rows that make the map; ``labels``: the query's runs.
+    rows that make the map; ``labels``: the query's runs. ``pairs``: the pair scores of these same
+    patches kept from an earlier re-rank (default: a new :class:`PairScores`).
     """
-    from memlog.descriptors.patches import pair_scores
-
+    score_pairs = pairs if pairs is not None else PairScores(q_patches, r_patches)
     n_q, n_c = res.indices.shape
     n_ref = max(1, len(rc))
     mr = map_rows[np.argsort(rc[map_rows], kind="stable")]
@@ -83,7 +113,7 @@ def rerank_by_patches(res: SequenceMatch, q_desc: F32, r_desc: F32, q_patches: n
         key = tq * n_ref + near[use]
         uk, inv = np.unique(key, return_inverse=True)
         total = np.zeros(pred.shape)
-        total[use] = pair_scores(q_patches, r_patches, uk // n_ref, uk % n_ref)[inv]
+        total[use] = score_pairs(uk // n_ref, uk % n_ref)[inv]
         count = use.sum(axis=2)
         patch[rows] = np.where(c >= 0, total.sum(axis=2) / np.maximum(count, 1), np.nan)
     res = replace(res, rerank=patch, info={**res.info, "patch_rerank": n_c})  # the places re-ranked

@@ -15,11 +15,14 @@ from memlog.settings import Flag, cosine_distance, nonneg_float, positive_float,
 from memlog.settings import fraction as a_fraction
 from memlog.selection._checks import finite_number, fraction, positive_number
 from memlog.selection.redundancy import RedundancyConfig
-from memlog.selection.segment import SEGMENT_DEFAULTS
+from memlog.selection.segment import SEGMENT_DEFAULTS, SIZE_KEYS
 from memlog.selection.selectors import select
 from memlog.selection.table import ScoreTable, Selection
 
-__all__ = ["SelectionConfig"]
+__all__ = ["SelectionConfig", "SIZES"]
+
+#: The settings that size a map (at most one is given): a keep fraction, then the spacings.
+SIZES = tuple(k for k in SIZE_KEYS if k != "spacing_frames")
 
 
 DEFAULT_CANDIDATES: int | Literal["all"] = 1
@@ -104,17 +107,17 @@ class SelectionConfig:
             v = finite_number(name, getattr(self, name))
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"{name} must be within [0, 1], got {v}")
-        for name in ("spacing_view", "spacing_m", "spacing_s"):
-            if getattr(self, name) is not None:
-                positive_number(name, getattr(self, name))
-        seg_only = [k for k in ("spacing_view", "spacing_m", "spacing_s") if getattr(self, k) is not None]
+        spacings = [k for k in SIZES[1:] if getattr(self, k) is not None]
+        for name in spacings:
+            positive_number(name, getattr(self, name))
+        seg_only = list(spacings)
         if self.segment_by != "auto":
             seg_only.append("segment_by")
         if seg_only and self.mode != "segment":
             raise ConfigError(f"{', '.join(seg_only)} need the segment selection mode")
-        sizes = [k for k in ("keep_fraction", "spacing_view", "spacing_m", "spacing_s") if getattr(self, k) is not None]
+        sizes = [k for k in SIZES if getattr(self, k) is not None]
         if len(sizes) > 1:
-            raise ConfigError(f"give one of keep_fraction, spacing_view, spacing_m, spacing_s (got {', '.join(sizes)})")
+            raise ConfigError(f"give one of {', '.join(SIZES)} (got {', '.join(sizes)})")
         if self.view_distance is not None and (self.segment_by != "view" or sizes):
             raise ConfigError("view_distance sizes segments by view change: it needs segment_by='view' and no "
                               "keep_fraction or spacing")
@@ -185,14 +188,9 @@ class SelectionConfig:
             "still_distance": self.still_distance, "centre_tolerance": self.centre_tolerance,
             "distinct_weight": self.distinct_weight,
         }
-        if self.keep_fraction is not None:
-            kw["keep_fraction"] = self.keep_fraction
-        elif self.spacing_view is not None:
-            kw["spacing_view"] = self.spacing_view
-        elif self.spacing_m is not None:
-            kw["spacing_m"] = self.spacing_m
-        elif self.spacing_s is not None:
-            kw["spacing_s"] = self.spacing_s
+        given = {k: getattr(self, k) for k in SIZES if getattr(self, k) is not None}
+        if given:
+            kw.update(given)  # one at most (checked above)
         elif self.view_distance is None or self.segment_by != "view":
             kw["spacing_view"] = SEGMENT_DEFAULTS.view_spacing
         SegmentConfig(**kw)

@@ -117,7 +117,7 @@ from memlog.selection.coordinates import (
 from memlog.selection.paper import codes_to_reasons, first_failing
 from memlog.selection.table import CRITERIA, Gap, ScoreTable, Selection
 
-__all__ = ["SegmentConfig", "SegmentDefaults", "SEGMENT_DEFAULTS", "select_segments", "segment_ids", "cut_segments",
+__all__ = ["SegmentConfig", "SegmentDefaults", "SEGMENT_DEFAULTS", "SIZE_KEYS", "select_segments", "segment_ids", "cut_segments",
            "shortlist_rows", "upper_bounds", "MS_DIGITS", "combined_score", "geometric_score", "percentile_ranks"]
 
 SegmentBy = Literal["auto", "distance", "time", "count", "view"]
@@ -165,6 +165,8 @@ class SegmentDefaults:
 
 #: The segment defaults every entry point reads (see :class:`SegmentDefaults`).
 SEGMENT_DEFAULTS = SegmentDefaults()
+#: The settings that size a segment selection (exactly one is given to :class:`SegmentConfig`).
+SIZE_KEYS = ("keep_fraction", "spacing_view", "spacing_m", "spacing_s", "spacing_frames")
 
 
 @dataclass(frozen=True)
@@ -220,7 +222,7 @@ class SegmentConfig:
             raise ConfigError(f"segment combine must be one of {_COMBINE}, got {self.combine!r}")
         sizes = {
             k: getattr(self, k)
-            for k in ("keep_fraction", "spacing_view", "spacing_m", "spacing_s", "spacing_frames")
+            for k in SIZE_KEYS
             if getattr(self, k) is not None
         }
         v = finite_number("still_distance", self.still_distance)
@@ -362,11 +364,12 @@ def _segment_by(table: ScoreTable, config: SegmentConfig) -> str:
 
 
 def _bins(table: ScoreTable, config: SegmentConfig, by: str, still: NDArray[np.bool_], n_seg: int | None,
-          info: dict[str, Any]) -> tuple[NDArray[np.int64], NDArray[np.float64] | None, float,
-                                         NDArray[np.bool_] | None]:
+          view_change: NDArray[np.float64] | None, info: dict[str, Any]
+          ) -> tuple[NDArray[np.int64], NDArray[np.float64] | None, float, NDArray[np.bool_] | None]:
     """Each row's bin along the coordinate ``by`` (stops left out), the coordinate itself (None for
     anchored view segments), the bin width and, by distance, the rows inside position gaps; what
-    the cut found goes into ``info``."""
+    the cut found goes into ``info``. ``view_change``: :func:`_view_change` where the table has
+    view vectors."""
     n = table.n
     raw: NDArray[np.int64]
     along: NDArray[np.float64] | None = None
@@ -405,7 +408,8 @@ def _bins(table: ScoreTable, config: SegmentConfig, by: str, still: NDArray[np.b
         raw = anchored_view_segments(table, config.view_distance)
         info["view_distance"] = config.view_distance
     else:  # view change
-        c = _view_change(table, still)
+        assert view_change is not None
+        c = view_change
         raw, width = bin_along(c, None, n_seg)
         along = c
         info["view_change"] = float(c[-1])
@@ -422,15 +426,16 @@ def _view_change(table: ScoreTable, still: NDArray[np.bool_]) -> NDArray[np.floa
     return out
 
 
-def _n_segments(table: ScoreTable, config: SegmentConfig, still: NDArray[np.bool_], info: dict[str, Any]
-                ) -> int | None:
+def _n_segments(table: ScoreTable, config: SegmentConfig, view_change: NDArray[np.float64] | None,
+                info: dict[str, Any]) -> int | None:
     """How many segments the drive is cut into when its size is a count (``keep_fraction``, or
-    ``spacing_view``: from the drive's view change); None when a spacing along ``by`` sizes it."""
+    ``spacing_view``: from the drive's view change, :func:`_view_change`; a table without view
+    vectors has none); None when a spacing along ``by`` sizes it."""
     n = table.n
     frac = config.keep_fraction
     if config.spacing_view is not None:
-        if table.view is not None:
-            total = float(_view_change(table, still)[-1])
+        if view_change is not None:
+            total = float(view_change[-1])
             info["spacing_view"] = config.spacing_view
             info["view_change"] = total
             return max(1, min(n, math.ceil(total / config.spacing_view - 1e-9)))
@@ -458,8 +463,10 @@ def cut_segments(table: ScoreTable, config: SegmentConfig
         info["still_frames"] = int(still.sum())
     if stops.source in MOTION_KINDS:
         info["stops_from"] = {"source": stops.source, "topic": stops.topic}
-    n_seg = _n_segments(table, config, still, info)
-    raw, along, width, in_gap = _bins(table, config, by, still, n_seg, info)
+    wanted = config.spacing_view is not None or by == "view"  # (the size, or the coordinate)
+    view_change = _view_change(table, still) if wanted and table.view is not None else None
+    n_seg = _n_segments(table, config, view_change, info)
+    raw, along, width, in_gap = _bins(table, config, by, still, n_seg, view_change, info)
     if along is not None:
         # in segment lengths, within the row's own bin (the last bin holds the end of the drive);
         # a drive of length 0 is one segment, every row at its middle

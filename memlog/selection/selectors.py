@@ -10,7 +10,7 @@ from memlog.errors import ConfigError
 from memlog.selection.calibrate import CalibrateConfig, select_calibrated
 from memlog.selection.paper import PaperConfig, select_paper
 from memlog.selection.redundancy import RedundancyConfig, drop_duplicates
-from memlog.selection.segment import SEGMENT_DEFAULTS, SegmentConfig, select_segments
+from memlog.selection.segment import SEGMENT_DEFAULTS, SIZE_KEYS, SegmentConfig, select_segments
 from memlog.selection.table import ScoreTable, Selection
 
 __all__ = ["SELECTORS", "select"]
@@ -28,9 +28,6 @@ _RUNNERS: dict[str, tuple[type[Any], Callable[[ScoreTable, Any], Selection]]] = 
     "calibrated": (CalibrateConfig, select_calibrated),
     "segment": (SegmentConfig, select_segments),
 }
-
-_SIZE_KEYS = ("keep_fraction", "spacing_view", "spacing_m", "spacing_s", "spacing_frames")
-
 
 def select(
     table: ScoreTable,
@@ -56,7 +53,7 @@ def select(
     if unknown:
         raise ConfigError(f"unknown setting(s) {unknown} for selector {name!r}; valid: {sorted(valid)}")
     if name == "segment" and "spacing_view" not in overrides:
-        if any(overrides.get(k) is not None for k in _SIZE_KEYS) or (
+        if any(overrides.get(k) is not None for k in SIZE_KEYS) or (
                 overrides.get("by") == "view" and "view_distance" in overrides):
             settings.pop("spacing_view", None)
     settings.update(overrides)
