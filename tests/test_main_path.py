@@ -79,7 +79,7 @@ def test_map_then_localize_runs_at_camera_resolution(stromovka: dict[str, Path])
     # along the drive (best first), the confidence its margin
     assert seq["rerank"]["by"] == "patches" and seq["rerank"]["patch_pca"] == m.patch_pca.sha256
     assert seq["hmm"]["posterior"] == "forward-backward"
-    # a map whitened on fewer than 1024 frames: the HMM averaged over the whitening's leading dimensions
+    # a map whitened on fewer than 1024 frames: one HMM over the places of the whitening's leading dimensions
     from memlog.matching.ensemble import ensemble_dims
 
     assert seq["ensemble"] == {"dims": ensemble_dims(m.whitening)} and len(seq["ensemble"]["dims"]) == 4

@@ -116,8 +116,9 @@ class SequenceConfig:
     (:func:`rerank_by_patches`; ``--no-rerank`` turns it off). ``hmm``: after the re-rank, decide
     each frame's place with its neighbours', as the drive's most likely path through every
     frame's candidate places (:mod:`memlog.matching.drive_hmm`; ``--no-hmm`` turns it off).
-    ``ensemble``: on a small whitened map, average the HMM's place probabilities over several
-    whitened dimensions (:mod:`memlog.matching.ensemble`; ``--no-ensemble`` turns it off).
+    ``ensemble``: on a small whitened map, re-rank the drive in several whitened dimensions and
+    let one HMM decide between all their places (:mod:`memlog.matching.ensemble`;
+    ``--no-ensemble`` turns it off).
     """
 
     length: int = setting(10, Flag(
@@ -165,8 +166,8 @@ class SequenceConfig:
         dest="no_hmm", value=lambda v: False))
     ensemble: bool = setting(True, Flag(
         ("--no-ensemble",), "match the drive once, in the map's whole whitening (default: on a map whitened on fewer "
-        "than 1024 frames, the drive HMM's place probabilities are averaged over the whitening's leading 100, 80, 60 "
-        "and 40 %% of dimensions, which steadies a whitening fitted on few frames)", "sequence matching",
+        "than 1024 frames, the drive is re-ranked in the whitening's leading 100, 80, 60 and 40 %% of dimensions and "
+        "the drive HMM decides between all their places, which steadies a whitening fitted on few frames)", "sequence matching",
         action="store_true", dest="no_ensemble", value=lambda v: False))
     experimental: Experimental = setting(default_factory=lambda: Experimental())
 

@@ -42,7 +42,7 @@ I64 = npt.NDArray[np.int64]
 
 SPEED_COST = 0.5  # log-probability per doubling or halving of the speed against the pace
 JUMP_COST = 6.0  # log-probability of a move the speed range does not allow (a relocalisation)
-BETA = 1.5  # emission: log-probability per unit of re-rank score (mean patch pairs along the path)
+BETA = 0.75  # emission: log-probability per unit of re-rank score (mean patch pairs along the path; docs/defaults.md)
 
 
 def _logsumexp(a: F64, axis: int) -> F64:

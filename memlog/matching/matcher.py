@@ -16,7 +16,7 @@ from memlog.matching.paths import _run_bounds
 from memlog.matching.rerank import RERANK_PLACES, PairScores, _patch_plan, _ranked_by, rerank_by_patches
 from memlog.matching.sequences import _median_step, match_sequences
 from memlog.matching.drive_hmm import place_probabilities
-from memlog.matching.ensemble import BELOW, combine, ensemble_dims, leading
+from memlog.matching.ensemble import BELOW, ensemble_dims, leading, union
 
 if TYPE_CHECKING:
     from memlog.descriptors.approx import IVFIndex
@@ -73,8 +73,8 @@ def match_tables(
         pairs = PairScores(query.patches[perm], reference.patches)
         spacing = _median_step(np.sort(rc[map_rows]))
 
-    def run(qd: F32, rd: F32) -> SequenceMatch:
-        """The descriptor stage, the patch re-rank and the drive HMM on descriptors ``qd``, ``rd``."""
+    def run(qd: F32, rd: F32, hmm: bool = True) -> SequenceMatch:
+        """The descriptor stage, the patch re-rank and (``hmm``) the drive HMM on descriptors ``qd``, ``rd``."""
         res = match_sequences(qd, q_c, index.db if index is not None else rd, rc, cfg, k=places, runs=q_runs,
                               ref_unit=unit, coordinate=coordinate, index=index, nprobe=nprobe, rerank=rerank,
                               standing=q_standing, ref_mask=None if index is not None else ref_mask, pace=pace)
@@ -85,17 +85,18 @@ def match_tables(
                                 places, unit, pairs=pairs)
         res.info["rerank"] = {"by": "patches", "places": places, "patch_pca": reference.patch_pca.sha256}
         if cfg.hmm and cfg.enabled:
-            res = _along_drive(res, qd, rd, q_c, rc, q_runs, spacing, unit, cfg)
+            if hmm:
+                res = _along_drive(res, qd, rd, q_c, rc, q_runs, spacing, unit, cfg)
         else:
             res.info["hmm"] = {"off": "turned off (--no-hmm)" if cfg.enabled else "single frames"}
         return res
 
     dims, why_alone = _ensemble_plan(cfg, reference, why_not, index)
-    res = run(q_desc, reference.descriptors)
-    if dims:
-        members = [res] + [run(leading(q_desc, d), leading(reference.descriptors, d)) for d in dims[1:]]
-        res = _by_posterior(combine(members, q_desc, reference.descriptors), q_desc, reference.descriptors, rc,
-                            cfg.exclude * unit)
+    res = run(q_desc, reference.descriptors, hmm=not dims)
+    if dims:  # every member's re-ranked places, decided by one drive HMM
+        members = [res] + [run(leading(q_desc, d), leading(reference.descriptors, d), hmm=False) for d in dims[1:]]
+        res = _along_drive(union(members, q_desc, reference.descriptors), q_desc, reference.descriptors, q_c, rc,
+                           q_runs, spacing, unit, cfg)
         res.info["ensemble"] = {"dims": dims}
     else:
         res.info["ensemble"] = {"off": why_alone}
@@ -153,7 +154,7 @@ def _ensemble_plan(cfg: SequenceConfig, reference: DescriptorTable, why_not: str
     if not cfg.ensemble:
         return [], "turned off (--no-ensemble)"
     if why_not is not None or not (cfg.hmm and cfg.enabled):
-        return [], "no drive HMM: the ensemble averages its place probabilities"
+        return [], "no drive HMM: it decides between the members' places"
     if w is None:
         return [], "the map is not whitened"
     if w.n_fit >= BELOW:
