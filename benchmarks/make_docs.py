@@ -205,8 +205,8 @@ BENCHES: list[Bench] = [
     Bench("whitening_spread",
           ("python", "benchmarks/whitening_spread.py", "--cache", "{work}/matcher-defaults"),
           "how far a map's R@1 moves with the frames its whitening is fitted on (8 refits on 85 % samples of the map's "
-          "own frames), matched once and with the whitening ensemble: the Stromovka pairs, full, default, half and "
-          "quarter maps",
+          "own frames), matched once and with the whitening ensemble (also over the query's moving frames, a stop "
+          "once): the Stromovka pairs, full, default, half and quarter maps",
           10, ("shared", "models"), defaults_anchor="the-whitening-ensemble"),
     Bench("drive_maps",
           ("python", "benchmarks/drive_maps.py", "--scores", "{scores}", "--cache", "{work}/drive-maps"),
