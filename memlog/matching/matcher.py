@@ -84,11 +84,10 @@ def match_tables(
         res = rerank_by_patches(res, qd, rd, pairs.q_patches, pairs.r_patches, q_c, rc, map_rows, q_runs, cfg,
                                 places, unit, pairs=pairs)
         res.info["rerank"] = {"by": "patches", "places": places, "patch_pca": reference.patch_pca.sha256}
-        if cfg.hmm and cfg.enabled:
-            if hmm:
-                res = _along_drive(res, qd, rd, q_c, rc, q_runs, spacing, unit, cfg)
-        else:
+        if not (cfg.hmm and cfg.enabled):
             res.info["hmm"] = {"off": "turned off (--no-hmm)" if cfg.enabled else "single frames"}
+        elif hmm:
+            res = _along_drive(res, qd, rd, q_c, rc, q_runs, spacing, unit, cfg)
         return res
 
     dims, why_alone = _ensemble_plan(cfg, reference, why_not, index)
@@ -136,14 +135,8 @@ def _along_drive(res: SequenceMatch, q_desc: F32, r_desc: F32, qc: F64, rc: F64,
     res.posterior = post[owner]
     res.info = {**res.info, "hmm": {"posterior": "filtered" if cfg.causal else "forward-backward",
                                     "standing_rows": int((owner != np.arange(len(owner))).sum())}}
-    return _by_posterior(res, q_desc, r_desc, rc, cfg.exclude * unit)
-
-
-def _by_posterior(res: SequenceMatch, q_desc: F32, r_desc: F32, rc: F64, excl: float) -> SequenceMatch:
-    """``res`` with each row's places ranked by their probability along the drive (``posterior``),
-    the margin the best place's probability minus the best other place's."""
-    assert res.posterior is not None
-    return _ranked_by(res, np.where(res.indices >= 0, res.posterior, -np.inf), q_desc, r_desc, rc, excl)
+    return _ranked_by(res, np.where(res.indices >= 0, res.posterior, -np.inf), q_desc, r_desc, rc,
+                      cfg.exclude * unit)
 
 
 def _ensemble_plan(cfg: SequenceConfig, reference: DescriptorTable, why_not: str | None,
