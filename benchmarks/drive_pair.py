@@ -11,7 +11,9 @@ its full and memorable rows equal ``memlog localize`` against the maps ``memlog 
 * **full**: ``memlog map --keep-fraction 1`` (every frame but the stops' repeats);
 * **memorable**: ``memlog map --keep-fraction K`` (memlog's selection), or ``memlog map`` (``default``:
   its default size, one frame per ``VIEW_STEP_CAP`` of the drive's view change);
-* **every k-th** and **random** (mean of ``--seeds`` maps): maps of the memorable map's size.
+* **every k-th**, **its start offsets** (mean ± std of R@1 over every k-th frame shifted along the
+  drive: ``memlog.selection.phase_masks``; "-" where there is one offset) and **random** (mean of
+  ``--seeds`` maps): maps of the memorable map's size.
 
 Pairs (``../shared/data``): ``aligned``, the Stromovka autumn map / winter query, frame i of one is
 place i of the other; ``drive``, the same places driven as a camera records a drive, with stops,
@@ -34,6 +36,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -71,6 +74,11 @@ def cell(row: dict[str, float]) -> str:
     return f"{row['recall@1']:.3f} / {row['auc']:.3f}"
 
 
+def spread(row: Any) -> str:
+    """Mean ± std of R@1 over every k-th frame's start offsets."""
+    return "-" if not row else f"{row['recall@1']:.3f} ± {row['std']['recall@1']:.3f} ({len(row['phases'])})"
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-drive-pair"))
@@ -82,8 +90,8 @@ def main() -> int:
                          "features, runs the default only)")
     ap.add_argument("--seeds", type=int, default=20)
     a = ap.parse_args()
-    print("| pair | keep | matcher | full | memorable | every k-th | random | frames (full / memorable) | s |\n"
-          "|---|---|---|---|---|---|---|---|---|")
+    print("| pair | keep | matcher | full | memorable | every k-th | every k-th: start offsets, R@1 | random | "
+          "frames (full / memorable) | s |\n|---|---|---|---|---|---|---|---|---|---|")
     for pair in a.pairs:
         for keep in a.keep:
             for matcher in a.matcher:
@@ -92,7 +100,8 @@ def main() -> int:
                 r = run(a.cache, pair, keep, matcher, a.seeds)
                 rows = {k: r[k] for k in ("full", "memorable", "uniform", "random")}
                 print(f"| {pair} | {keep} | {matcher} | {cell(rows['full'])} | {cell(rows['memorable'])} | "
-                      f"{cell(rows['uniform'])} | {cell(rows['random'])} | {rows['full']['frames']} / "
+                      f"{cell(rows['uniform'])} | {spread(r.get('uniform_phases'))} | {cell(rows['random'])} | "
+                      f"{rows['full']['frames']} / "
                       f"{rows['memorable']['frames']} | {r['bench_seconds']:.0f} |", flush=True)
     return 0
 

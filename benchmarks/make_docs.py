@@ -114,9 +114,10 @@ def summarise_evaluate(outdir: Path) -> str:
     """The table ``memlog evaluate`` prints, from ``OUTDIR/results.json``: every map variant under
     the map-only protocol (sequences and single frames) and the paper protocol."""
     res = json.loads((outdir / "results.json").read_text())
-    names = [("full", "full"), ("memorable", "memorable (the map `memlog map` writes)"),
-             ("memorable_exact", "memorable, exact selection"), ("uniform", "every k-th frame"),
-             ("uniform_distance", "uniform by distance"), ("random", "random")]
+    sys.path.insert(0, str(ROOT))
+    from memlog.evaluation.analysis import MAP_ROWS
+
+    names = {**MAP_ROWS, "memorable": "memorable (the map `memlog map` writes)"}.items()
     lines = ["| map | frames | coverage | R@1 | R@5 | AUC-PR | R@1 single frames | AUC single frames | paper R@1 "
              "| paper AUC |", "|---|---|---|---|---|---|---|---|---|---|"]
     for key, label in names:

@@ -101,6 +101,13 @@ def test_every_kth_baseline_is_a_written_map(drive_pair: dict[str, Any], tmp_pat
                  str(tmp_path / "u.parquet"), "--map", str(m)]) == 0
     r1, _auc = _scores(tmp_path / "u.parquet", drive_pair["truth"])
     assert r1 == pytest.approx(res["recall@1"], abs=1e-9)
-    # the random baselines were measured and not left behind
+    # every k-th frame from its start offsets: 84 of 139 frames is a spacing of 1.66, so two offsets (shifted
+    # 0 and 1 frame, the last frame wrapping to the first); the first is the map above, the row their mean
+    ph = drive_pair["results"]["uniform_phases"]
+    assert [sorted(p["kept_indices"]) for p in ph["phases"]] == [sorted((np.asarray(kept) + d) % n) for d in (0, 1)]
+    assert ph["phases"][0]["recall@1"] == pytest.approx(r1, abs=1e-9)
+    assert ph["recall@1"] == pytest.approx(np.mean([p["recall@1"] for p in ph["phases"]]))
+    # the random baselines and the shifted every-k-th maps were measured and not left behind
     assert drive_pair["results"]["random"]["seeds"] == 2
     assert not list((drive_pair["eval"] / "maps").glob("random-*"))
+    assert not list((drive_pair["eval"] / "maps").glob("every-kth-*"))

@@ -160,6 +160,16 @@ def test_evaluate_end_to_end(all_scored: Path, tmp_path: Path) -> None:
     assert saved["memorable"]["recall@1"] == pytest.approx(k / 8)  # a kept place is always found
     assert set(saved["memorable"]["thresholds"]) == {"mt", "st", "et"}
     assert "std" in saved["random"] and saved["random"]["seeds"] == 5
+    # every k-th frame from its start offsets: the every-k-th map's frames shifted 0, 1, 2 ... frames along
+    # the drive (wrapping past the last of the 8), each map of k frames and, under exact truth, R@1 k/8
+    ph = saved["uniform_phases"]
+    first = sorted(pq.read_table(Path(saved["uniform"]["map"]).with_suffix(".parquet")).to_pydict()["frame_index"])
+    assert len(ph["phases"]) >= 2
+    for d, p in enumerate(ph["phases"]):
+        assert sorted(p["kept_indices"]) == sorted((i + d) % 8 for i in first)
+        assert p["recall@1"] == pytest.approx(k / 8)
+    assert ph["phases"][0]["recall@1"] == saved["uniform"]["recall@1"]
+    assert ph["recall@1"] == pytest.approx(np.mean([p["recall@1"] for p in ph["phases"]]))
     assert [r["threshold"] for r in saved["sweeps"]["mt"]] == [round(0.1 * i, 1) for i in range(11)]
     assert saved["sweeps"]["st"][0]["frames"] == 8
     assert (out / "report.html").read_text().count("<svg") >= 6
@@ -227,11 +237,11 @@ def test_evaluate_quick_trials_several_descriptors(all_scored: Path, tmp_path: P
                         "--max-frames", "3", "--seeds", "2", "--no-report"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     lines = [ln for ln in r.stdout.splitlines() if ln.startswith(("thumbnail", "dinov2-gem"))]
-    assert len(lines) == 10 and "Traceback" not in r.stderr  # 5 maps per descriptor (exact: --compare-exact), one table
+    assert len(lines) == 12 and "Traceback" not in r.stderr  # 6 maps per descriptor (exact: --compare-exact), one table
     maps: dict[str, list[str]] = {}
-    for ln in lines:  # the map column: full, memorable (written), its exact selection, and the three baselines
+    for ln in lines:  # the map column: full, memorable (written), its exact selection, and the four baselines
         m = re.match(r"^(\S+)\s+(?:raw|whitened)\s+(.+?)\s{2,}\d", ln)
         assert m, ln
         maps.setdefault(m.group(1), []).append(m.group(2))
-    assert all(m == ["full", "memorable", "every k-th", "uniform by distance", "random"]
-               for m in maps.values()), maps  # the demo has GPS: uniform by distance too
+    assert all(m == ["full", "memorable", "every k-th", "every k-th, its start offsets", "uniform by distance",
+                     "random"] for m in maps.values()), maps  # 2 of 3 frames: two offsets; the demo has GPS

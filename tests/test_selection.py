@@ -30,6 +30,7 @@ from memlog.selection import (
     select_calibrated,
     select_paper,
     select_segments,
+    phase_masks,
     uniform_indices,
     uniform_mask,
 )
@@ -607,6 +608,31 @@ def test_uniform_baseline() -> None:
         uniform_indices(5, 6)
     with pytest.raises(ConfigError):
         uniform_indices(5, -1)
+
+
+def test_every_kth_from_its_start_offsets() -> None:
+    # every other frame of 9: the even frames, then the odd ones (the last shifted past frame 8 wraps to 0)
+    m = phase_masks(9, 5)
+    assert [np.flatnonzero(r).tolist() for r in m] == [[0, 2, 4, 6, 8], [0, 1, 3, 5, 7]]
+    assert np.array_equal(m[0], uniform_mask(9, 5))
+    # a spacing of 2.25 (5 of 10): three offsets, shifted 0, 1 and 2 frames (rint of 0, 0.75, 1.5)
+    assert [np.flatnonzero(r).tolist() for r in phase_masks(10, 5)] == [[0, 2, 4, 7, 9], [0, 1, 3, 5, 8],
+                                                                        [1, 2, 4, 6, 9]]
+    # every 5.2th of 100 (spacing 99/19): shifts of 0, 1, 3 and 4 frames (rint of j * 5.21 / 4), a row
+    # shifted past frame 99 wrapping to the first frames
+    base = uniform_indices(100, 20)
+    m = phase_masks(100, 20)
+    want = [sorted(int(v) for v in (base + d) % 100) for d in (0, 1, 3, 4)]
+    assert [np.flatnonzero(r).tolist() for r in m] == want
+    assert (m.sum(axis=1) == 20).all()
+    assert len(phase_masks(100, 20, phases=2)) == 2 and len(phase_masks(100, 20, phases=1)) == 1
+    # one offset only where every frame is kept, or one frame
+    assert phase_masks(10, 10).shape == (1, 10) and phase_masks(10, 1).shape == (1, 10)
+    assert phase_masks(10, 0).sum() == 0
+    with pytest.raises(ConfigError):
+        phase_masks(10, 5, phases=0)
+    with pytest.raises(ConfigError):
+        phase_masks(5, 6)
 
 
 def test_random_baseline() -> None:

@@ -579,6 +579,7 @@ def evaluate_config(args: argparse.Namespace) -> Any:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from memlog.evaluation.analysis import MAP_ROWS
     from memlog.steps.evaluate import evaluate
 
     cfg = evaluate_config(args)
@@ -586,13 +587,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     rows = []
     for kind, kres in res["descriptors"].items():
         white = "whitened" if (kres.get("whitening") or {}).get("sha256") else "raw"
-        for name in ("full_unwhitened", "full", "memorable", "memorable_exact", "uniform", "uniform_distance",
-                     "random"):
+        for name, label in {"full_unwhitened": "full", **MAP_ROWS}.items():
             if name not in kres:
                 continue
             r = kres[name]
-            label = {"full_unwhitened": "full", "memorable_exact": "memorable (exact)", "uniform": "every k-th",
-                     "uniform_distance": "uniform by distance"}.get(name, name)
             rows.append([kind, "raw" if name == "full_unwhitened" else white, label, str(r["frames"]),
                          fmt3(r["coverage"]), fmt3(r["auc"]), fmt3(r["recall@1"]), fmt3(r.get("recall@5")),
                          fmt3((r.get("single_frame") or {}).get("recall@1")),

@@ -15,10 +15,14 @@ from memlog.evaluation.metrics import Discarded, ProtocolResult, evaluate_map_on
 from memlog.selection import ScoreTable
 from memlog.selection.paper import first_failing
 
-__all__ = ["SWEEP_STEPS", "CRITERIA", "sweeps", "contribution", "mean_std", "position_truth", "local_positions"]
+__all__ = ["SWEEP_STEPS", "CRITERIA", "MAP_ROWS", "sweeps", "contribution", "mean_std", "position_truth", "local_positions"]
 
 SWEEP_STEPS = tuple(round(0.1 * i, 1) for i in range(11))
 CRITERIA = {1: "staticity", 2: "entropy", 3: "memorability"}
+#: The maps ``memlog evaluate`` compares, in the order every table gives them (results.json key -> label).
+MAP_ROWS = {"full": "full", "memorable": "memorable", "memorable_exact": "memorable (exact)",
+            "uniform": "every k-th", "uniform_phases": "every k-th, its start offsets",
+            "uniform_distance": "uniform by distance", "random": "random"}
 
 
 def position_truth(ref_t: DescriptorTable, q_t: DescriptorTable, tol_m: float) -> list[set[int]]:

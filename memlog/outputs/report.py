@@ -27,6 +27,7 @@ import numpy as np
 
 from memlog.descriptors.table import DescriptorTable
 from memlog.errors import ImageDecodeError
+from memlog.evaluation.analysis import MAP_ROWS
 from memlog.evaluation.metrics import ProtocolResult
 from memlog.io.atomic import write_bytes_atomic
 from memlog.io.open import open_log
@@ -86,14 +87,22 @@ def _gallery(title: str, rows: list[int], table: ScoreTable, sel: Selection, thu
     return f"<h3>{html.escape(title)}</h3><div class='gallery'>{''.join(cells)}</div>"
 
 
+def _phases_text(results: dict[str, Any]) -> str:
+    """The sentence on every k-th frame's start offsets, when they were measured."""
+    ph = results.get("uniform_phases")
+    if not ph:
+        return ""
+    each = ", ".join(f"{p['recall@1']:.3f}" for p in ph["phases"])
+    return (f"; every k-th, its start offsets: mean ± std over {len(ph['phases'])} maps of every k-th frame "
+            f"shifted along the drive (R@1 {html.escape(each)}, the first is every k-th)")
+
+
 def _table_html(results: dict[str, Any]) -> str:
     head = ("<tr><th>map</th><th>frames</th><th>coverage</th><th>AUC</th><th>R@1</th><th>R@5</th><th>R@10</th>"
             "<th>P@100%R</th><th>ms/query</th><th>paper AUC</th><th>paper R@1</th>"
             "<th>single-frame AUC</th><th>single-frame R@1</th><th>single-frame paper R@1</th></tr>")
     rows = []
-    labels = {"memorable_exact": "memorable (exact selection)", "uniform": "every k-th frame",
-              "uniform_distance": "uniform by distance"}
-    for name in ("full", "memorable", "memorable_exact", "uniform", "uniform_distance", "random"):
+    for name, label in MAP_ROWS.items():
         if name not in results:
             continue
         r = results[name]
@@ -106,7 +115,7 @@ def _table_html(results: dict[str, Any]) -> str:
         pp = r["paper_protocol"]
         sf = r.get("single_frame") or {}
         sfp = sf.get("paper_protocol") or {}
-        rows.append(f"<tr><td>{labels.get(name, name)}</td><td>{r['frames']}</td><td>{f('coverage')}</td>"
+        rows.append(f"<tr><td>{label}</td><td>{r['frames']}</td><td>{f('coverage')}</td>"
                     f"<td>{f('auc')}</td><td>{f('recall@1')}</td><td>{f('recall@5')}</td><td>{f('recall@10')}</td>"
                     f"<td>{f('precision@100%recall')}</td><td>{1e3 * r['match_seconds_per_query']:.3f}</td>"
                     f"<td>{f('auc', pp, pp.get('std', {}))}</td><td>{f('recall@1', pp, pp.get('std', {}))}</td>"
@@ -560,7 +569,7 @@ justify-content:center;color:#666}} .note{{color:#555;font-size:13px}}</style></
 <p>Matched as {html.escape(how)} (details under <a href="#settings-section">settings</a>); the single-frame columns
 match the same maps frame by frame. Map-only: only map frames are searched. Paper protocol: the full reference
 database is searched and a query whose best match was discarded reports no match. Random: mean ± std over
-{results['random']['seeds']} seeds.</p>
+{results['random']['seeds']} seeds{_phases_text(results)}.</p>
 <h2 id="where">Where localization fails</h2>{where}
 <h2 id="pr">Precision-recall</h2>{''.join(pr)}
 <h2 id="sweeps">Threshold sweeps</h2>{''.join(sweeps)}

@@ -15,6 +15,7 @@ from memlog.selection.baselines import (
     random_masks,
     uniform_indices,
     uniform_mask,
+    phase_masks,
 )
 from memlog.selection.calibrate import CalibrateConfig, Calibration, calibrate, select_calibrated
 from memlog.selection.paper import PaperConfig, select_paper
@@ -52,6 +53,7 @@ __all__ = [
     "distance_uniform_mask",
     "uniform_indices",
     "uniform_mask",
+    "phase_masks",
     "random_indices",
     "random_mask",
     "random_masks",

@@ -9,8 +9,9 @@ writes every map of the comparison with the map step's writer (:func:`~memlog.st
 from the scores, looks, descriptors and patch features it already has): the memorable map
 (``OUT/map.mcap`` + ``OUT/map.parquet``, exactly the map ``memlog map`` writes with the same
 settings), the full map (``OUT/maps/full.mcap``: ``memlog map --keep-fraction 1``) and the baselines
-of the memorable map's size (every k-th frame ``uniform``; random frames, 20 seeds, written, measured
-and removed). Each is read back from its Parquet and matched as ``memlog localize`` matches it, in
+of the memorable map's size (every k-th frame ``uniform``, and from its other start offsets
+``uniform_phases``: :func:`~memlog.selection.phase_masks`; random frames, 20 seeds; the last two
+written, measured and removed). Each is read back from its Parquet and matched as ``memlog localize`` matches it, in
 its own descriptor space (:mod:`memlog.evaluation.matching`), under the map-only and the paper
 protocol. It adds map size and matching time and, when every reference frame has every score
 (``compare_exact``), the paper's threshold sweeps and the criterion contribution
@@ -49,7 +50,7 @@ from memlog.descriptors.registry import DESCRIBERS, make_describer
 from memlog.matching import SequenceConfig
 from memlog.descriptors.table import DescriptorTable
 from memlog.errors import ConfigError, EvaluationError, MemlogError
-from memlog.evaluation.analysis import SWEEP_STEPS, contribution, local_positions, mean_std, position_truth, sweeps
+from memlog.evaluation.analysis import MAP_ROWS, SWEEP_STEPS, contribution, local_positions, mean_std, position_truth, sweeps
 from memlog.evaluation.matching import Matching, rows_for, whitened
 from memlog.evaluation.matching import truth_rows as truth_as_rows
 from memlog.evaluation.metrics import PAPER_READINGS, ProtocolResult, parse_truth
@@ -64,7 +65,7 @@ from memlog.outputs.descriptor_table import read_cached, read_descriptors, write
 from memlog.outputs.results import write_results
 from memlog.progress import info
 from memlog.scoring.config import ScoreConfig
-from memlog.selection import distance_uniform_mask, random_masks, uniform_mask
+from memlog.selection import distance_uniform_mask, phase_masks, random_masks, uniform_mask
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.settings import Flag, count_or_all, nonneg_float, positive_int, setting
 from memlog.steps.map import Looks, MapConfig, MapResult, make_map, score_table, staged_stageable
@@ -405,7 +406,7 @@ def _evaluated(run: _Run, t_start: float) -> EvaluateResult:
     assert main is not None
     (choice, describer, ref_t, matching, truth_rows, table, sel, per_variant, map_res, truth_src) = main
     first_kind = by_kind[choice.chosen]
-    for name in ("full", "memorable", "memorable_exact", "uniform", "uniform_distance", "random"):
+    for name in MAP_ROWS:
         if name in first_kind:
             results[name] = first_kind[name]
     results["matching"] = first_kind["matching"]
@@ -570,6 +571,15 @@ def _compare_maps(run: _Run, maps: _MapWriter, map_res: MapResult, map_table: De
         res["memorable_exact"]["kept_indices"] = exact.kept_indices.tolist()
     res["uniform"]["note"] = ("every k-th frame: evenly spaced frame indices, as many as the memorable map, "
                               "written as a map of those frames")
+    phases = phase_masks(len(ref_t), kk)
+    if len(phases) > 1:  # every k-th frame from its other start offsets (the first is "uniform" itself)
+        each = [res["uniform"]] + [maps.evaluate(maps.write(f"every-kth-{j}", keep=m, temporary=True), q_t,
+                                                 truth_rows, cfg)[0] for j, m in enumerate(phases[1:], 1)]
+        res["uniform_phases"] = {**mean_std(each), "phases": [
+            {"kept_indices": ref_t.frame_index[m].tolist(), "recall@1": r["recall@1"], "auc": r["auc"]}
+            for m, r in zip(phases, each)], "note": (
+            f"every k-th frame from {len(phases)} start offsets (the first: every k-th above), mean and std: "
+            "one every-k-th map is one draw of where its frames fall")}
     rand = [maps.evaluate(maps.write(f"random-{seed}", keep=m, temporary=True), q_t, truth_rows, cfg)[0]
             for seed, m in zip(range(cfg.seeds), random_masks(len(ref_t), kk, range(cfg.seeds)))]
     maps.clean()
