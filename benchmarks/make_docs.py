@@ -45,6 +45,7 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # (the evaluate summaries name memlog's map rows)
 PAGE = ROOT / "docs" / "benchmarks.md"
 SHARED = Path(os.environ.get("MEMLOG_SHARED_DATA", ROOT.parent / "shared" / "data"))
 WORK = Path(os.environ.get("MEMLOG_BENCH_WORK", "/tmp/memlog-make-docs"))
@@ -114,7 +115,6 @@ def summarise_evaluate(outdir: Path) -> str:
     """The table ``memlog evaluate`` prints, from ``OUTDIR/results.json``: every map variant under
     the map-only protocol (sequences and single frames) and the paper protocol."""
     res = json.loads((outdir / "results.json").read_text())
-    sys.path.insert(0, str(ROOT))
     from memlog.evaluation.analysis import MAP_ROWS
 
     names = {**MAP_ROWS, "memorable": "memorable (the map `memlog map` writes)"}.items()

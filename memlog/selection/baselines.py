@@ -76,7 +76,7 @@ def phase_masks(n: int, k: int, phases: int = MAX_PHASES) -> NDArray[np.bool_]:
     if isinstance(phases, bool) or not isinstance(phases, numbers.Integral) or phases < 1:
         raise ConfigError(f"phases must be an integer >= 1, got {phases!r}")
     base = uniform_indices(n, k)
-    if k < 2 or k == n:
+    if k < 2:  # (k == n: a spacing of 1, one offset below)
         return _mask(n, base)[None, :]
     s = (n - 1) / (k - 1)
     p = min(int(phases), int(np.ceil(s - 1e-9)))

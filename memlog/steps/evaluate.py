@@ -65,7 +65,7 @@ from memlog.outputs.descriptor_table import read_cached, read_descriptors, write
 from memlog.outputs.results import write_results
 from memlog.progress import info
 from memlog.scoring.config import ScoreConfig
-from memlog.selection import distance_uniform_mask, phase_masks, random_masks, uniform_mask
+from memlog.selection import distance_uniform_mask, phase_masks, random_masks
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.settings import Flag, count_or_all, nonneg_float, positive_int, setting
 from memlog.steps.map import Looks, MapConfig, MapResult, make_map, score_table, staged_stageable
@@ -540,7 +540,8 @@ def _compare_maps(run: _Run, maps: _MapWriter, map_res: MapResult, map_table: De
     mask = np.isin(ref_t.frame_index, sel.kept_indices)
     per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
     kk = int(mask.sum())
-    given: dict[str, np.ndarray] = {"uniform": uniform_mask(len(ref_t), kk)}
+    phases = phase_masks(len(ref_t), kk)  # every k-th frame from each start offset, the first "uniform" itself
+    given: dict[str, np.ndarray] = {"uniform": phases[0]}
     exact = None
     if (cfg.compare_exact and cfg.select.mode == "segment" and cfg.candidates != "all"
             and map_res.tables.get(ref_topic) is not None):
@@ -571,8 +572,7 @@ def _compare_maps(run: _Run, maps: _MapWriter, map_res: MapResult, map_table: De
         res["memorable_exact"]["kept_indices"] = exact.kept_indices.tolist()
     res["uniform"]["note"] = ("every k-th frame: evenly spaced frame indices, as many as the memorable map, "
                               "written as a map of those frames")
-    phases = phase_masks(len(ref_t), kk)
-    if len(phases) > 1:  # every k-th frame from its other start offsets (the first is "uniform" itself)
+    if len(phases) > 1:  # every k-th frame from its other start offsets
         each = [res["uniform"]] + [maps.evaluate(maps.write(f"every-kth-{j}", keep=m, temporary=True), q_t,
                                                  truth_rows, cfg)[0] for j, m in enumerate(phases[1:], 1)]
         res["uniform_phases"] = {**mean_std(each), "phases": [
