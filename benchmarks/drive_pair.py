@@ -3,6 +3,7 @@
 
     python benchmarks/drive_pair.py                      # Markdown table (about 15 minutes on 2 cores)
     python benchmarks/drive_pair.py --pairs drive --keep 0.5 --matcher default
+    python benchmarks/drive_pair.py --table candidates --pairs drive --keep 0.5   # (about 40 minutes)
 
 Every row is ``memlog evaluate`` on a shared pair, whose maps are all written by ``memlog map``'s
 writer and matched as ``memlog localize`` matches them (``tests/test_drive_pair.py`` checks that
@@ -25,6 +26,13 @@ patch features, so neither the re-rank nor the drive HMM runs). ``--matcher``: `
 
 Columns: R@1 / AUC-PR of each map under the map-only protocol, and the frames of the full and the
 memorable map. Outputs are kept in ``--cache`` (each pair's descriptors are reused across rows).
+
+``--table candidates``: does memorability (ResMem) choose better frames than the cheap rule, at camera
+resolution? The memorable map of each pair and size written with ``memlog map --candidates K`` (ResMem
+chooses between K frames of each segment, the best of them by (MS·SS·ES)^(1/3); K = 1, the default,
+takes the frame of the best cheap bound (SS²·ES)^(1/3) nearest the segment's middle and runs no ResMem)
+and with every frame a candidate (``all``: the exact best), with and without MS (``all, SS·ES only``:
+``[select] weights = [0, 1, 1]`` in a ``--config`` file); default matcher, R@1 / AUC-PR, map-only.
 """
 
 from __future__ import annotations
@@ -49,17 +57,25 @@ KEEPS = ["0.5", "default"]  # "default": no --keep-fraction (one frame per VIEW_
 MATCHERS = {"default": [], "no-ensemble": ["--no-ensemble"], "no-hmm": ["--no-hmm"]}
 
 
-def run(cache: Path, pair: str, keep: str, matcher: str, seeds: int) -> dict[str, object]:
+#: the candidates table's columns: the flags of ``memlog evaluate`` that choose the memorable map
+CANDIDATES = {"K = 1 (default)": ["--candidates", "1"], "K = 2": ["--candidates", "2"],
+              "all (exact)": ["--candidates", "all"], "all, SS·ES only (no MS)": ["--candidates", "all", "--config", "{no_ms}"]}
+NO_MS = "[select]\nweights = [0.0, 1.0, 1.0]\n"
+
+
+def run(cache: Path, pair: str, keep: str, matcher: str, seeds: int, extra: list[str] | None = None,
+        outdir: str | None = None) -> dict[str, object]:
     """``memlog evaluate`` of ``pair`` at ``--keep-fraction keep`` (``default``: memlog's default size)
-    with the matcher's flags ``MATCHERS[matcher]``; its results.json."""
+    with the matcher's flags ``MATCHERS[matcher]`` and ``extra`` flags, into ``cache/outdir`` (default:
+    ``cache/pair``); its results.json."""
     from memlog.cli.app import main as memlog
 
     ref, query, truth = (SHARED / f for f in PAIRS[pair])
-    out = cache / pair
+    out = cache / (outdir or pair)
     out.mkdir(parents=True, exist_ok=True)
     args = ["-q", "evaluate", "--reference", str(ref), "--query", str(query), "--truth", str(truth), "-o", str(out),
             *([] if keep == "default" else ["--keep-fraction", keep]), "--seeds", str(seeds), "--no-report",
-            *MATCHERS[matcher]]
+            *MATCHERS[matcher], *(extra or [])]
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(io.StringIO()):  # (evaluate's own table; the row is printed below)
         rc = memlog(args)
@@ -79,6 +95,23 @@ def spread(row: Any) -> str:
     return "-" if not row else f"{row['recall@1']:.3f} ± {row['std']['recall@1']:.3f} ({len(row['phases'])})"
 
 
+def candidates_table(cache: Path, pairs: list[str], keeps: list[str]) -> None:
+    """The memorable map chosen with and without memorability (``CANDIDATES``), default matcher."""
+    cache.mkdir(parents=True, exist_ok=True)
+    no_ms = cache / "no-ms.toml"
+    no_ms.write_text(NO_MS)
+    print(f"| pair | keep | {' | '.join(CANDIDATES)} | frames |\n|---|---|{'---|' * len(CANDIDATES)}---|")
+    for pair in pairs:
+        for keep in keeps:
+            # each column in its own directory: evaluate keeps one staged-score cache per map and settings,
+            # so columns sharing a directory would score every frame with ResMem again on each rerun
+            got = [run(cache, pair, keep, "default", 1, [a.replace("{no_ms}", str(no_ms)) for a in flags],
+                       outdir=f"{pair}-candidates-{i}") for i, flags in enumerate(CANDIDATES.values())]
+            rows = [r["memorable"] for r in got]  # type: ignore[index]
+            print(f"| {pair} | {keep} | {' | '.join(cell(m) for m in rows)} | "
+                  f"{' / '.join(str(m['frames']) for m in rows)} |", flush=True)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-drive-pair"))
@@ -89,7 +122,13 @@ def main() -> int:
                     help="the matcher's settings (default: default no-ensemble; Nordland, which has no patch "
                          "features, runs the default only)")
     ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--table", choices=["maps", "candidates"], default="maps",
+                    help="maps: every map row (default); candidates: the memorable map chosen with and without "
+                         "memorability (ResMem), --candidates 1, 2 and all")
     a = ap.parse_args()
+    if a.table == "candidates":
+        candidates_table(a.cache, a.pairs, a.keep)
+        return 0
     print("| pair | keep | matcher | full | memorable | every k-th | every k-th: start offsets, R@1 | random | "
           "frames (full / memorable) | s |\n|---|---|---|---|---|---|---|---|---|---|")
     for pair in a.pairs:

@@ -203,6 +203,13 @@ BENCHES: list[Bench] = [
           "localize` matches it), with and without the whitening ensemble: the Stromovka pair, the Stromovka drive pair "
           "with stops, crawls and fast stretches, and Nordland; half maps and memlog's default size",
           20, ("shared", "models"), defaults_anchor="drives-as-cameras-record-them"),
+    Bench("drive_pair_candidates",
+          ("python", "benchmarks/drive_pair.py", "--cache", "{work}/drive-pair", "--table", "candidates", "--pairs",
+           "drive", "--keep", "0.5"),
+          "does memorability (ResMem) choose better map frames than the cheap rule at camera resolution? The memorable "
+          "map of the Stromovka drive pair at half size with `--candidates 1` (default: no ResMem), `2` and `all`, "
+          "and exact without MS",
+          40, ("shared", "models"), defaults_anchor="does-memorability-help-choose-within-a-segment"),
     Bench("whitening_spread",
           ("python", "benchmarks/whitening_spread.py", "--cache", "{work}/matcher-defaults"),
           "how far a map's R@1 moves with the frames its whitening is fitted on (8 refits on 85 % samples of the map's "
@@ -317,6 +324,7 @@ TITLES = {
     "matcher_defaults": "the drive matcher's defaults",
     "rerank_table": "patch re-ranking",
     "drive_pair": "maps of every size on drives as cameras record them",
+    "drive_pair_candidates": "does memorability choose better frames at camera resolution?",
     "whitening_spread": "a map's R@1 over refitted whitenings; the whitening ensemble",
     "drive_maps": "maps of drives that stop, crawl and speed up",
     "selection_table": "selection modes against baselines",
