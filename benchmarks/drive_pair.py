@@ -3,7 +3,7 @@
 
     python benchmarks/drive_pair.py                      # Markdown table (about 15 minutes on 2 cores)
     python benchmarks/drive_pair.py --pairs drive --keep 0.5 --matcher default
-    python benchmarks/drive_pair.py --table candidates --pairs drive --keep 0.5   # (about 40 minutes)
+    python benchmarks/drive_pair.py --table candidates --pairs drive aligned --keep 0.5   # (about 70 minutes)
 
 Every row is ``memlog evaluate`` on a shared pair, whose maps are all written by ``memlog map``'s
 writer and matched as ``memlog localize`` matches them (``tests/test_drive_pair.py`` checks that

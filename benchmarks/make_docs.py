@@ -205,11 +205,11 @@ BENCHES: list[Bench] = [
           20, ("shared", "models"), defaults_anchor="drives-as-cameras-record-them"),
     Bench("drive_pair_candidates",
           ("python", "benchmarks/drive_pair.py", "--cache", "{work}/drive-pair", "--table", "candidates", "--pairs",
-           "drive", "--keep", "0.5"),
+           "drive", "aligned", "--keep", "0.5"),
           "does memorability (ResMem) choose better map frames than the cheap rule at camera resolution? The memorable "
-          "map of the Stromovka drive pair at half size with `--candidates 1` (default: no ResMem), `2` and `all`, "
+          "map of the Stromovka drive pair and the frame-aligned pair at half size with `--candidates 1` (default: no ResMem), `2` and `all`, "
           "and exact without MS",
-          40, ("shared", "models"), defaults_anchor="does-memorability-help-choose-within-a-segment"),
+          70, ("shared", "models"), defaults_anchor="does-memorability-help-choose-within-a-segment"),
     Bench("whitening_spread",
           ("python", "benchmarks/whitening_spread.py", "--cache", "{work}/matcher-defaults"),
           "how far a map's R@1 moves with the frames its whitening is fitted on (8 refits on 85 % samples of the map's "
