@@ -57,10 +57,15 @@ KEEPS = ["0.5", "default"]  # "default": no --keep-fraction (one frame per VIEW_
 MATCHERS = {"default": [], "no-ensemble": ["--no-ensemble"], "no-hmm": ["--no-hmm"]}
 
 
-#: the candidates table's columns: the flags of ``memlog evaluate`` that choose the memorable map
-CANDIDATES = {"K = 1 (default)": ["--candidates", "1"], "K = 2": ["--candidates", "2"],
-              "all (exact)": ["--candidates", "all"], "all, SS·ES only (no MS)": ["--candidates", "all", "--config", "{no_ms}"]}
-NO_MS = "[select]\nweights = [0.0, 1.0, 1.0]\n"
+NO_MS = "[select]\nweights = [0.0, 1.0, 1.0]\n"  # a --config file: selection without MS
+
+
+def candidate_flags(no_ms: Path) -> dict[str, list[str]]:
+    """The candidates table's columns: the flags of ``memlog evaluate`` that choose the memorable map
+    (``no_ms``: a config file holding ``NO_MS``)."""
+    return {"K = 1 (default)": ["--candidates", "1"], "K = 2": ["--candidates", "2"],
+            "all (exact)": ["--candidates", "all"],
+            "all, SS·ES only (no MS)": ["--candidates", "all", "--config", str(no_ms)]}
 
 
 def run(cache: Path, pair: str, keep: str, matcher: str, seeds: int, extra: list[str] | None = None,
@@ -96,17 +101,18 @@ def spread(row: Any) -> str:
 
 
 def candidates_table(cache: Path, pairs: list[str], keeps: list[str]) -> None:
-    """The memorable map chosen with and without memorability (``CANDIDATES``), default matcher."""
+    """The memorable map chosen with and without memorability (:func:`candidate_flags`), default matcher."""
     cache.mkdir(parents=True, exist_ok=True)
     no_ms = cache / "no-ms.toml"
     no_ms.write_text(NO_MS)
-    print(f"| pair | keep | {' | '.join(CANDIDATES)} | frames |\n|---|---|{'---|' * len(CANDIDATES)}---|")
+    columns = candidate_flags(no_ms)
+    print(f"| pair | keep | {' | '.join(columns)} | frames |\n|---|---|{'---|' * len(columns)}---|")
     for pair in pairs:
         for keep in keeps:
             # each column in its own directory: evaluate keeps one staged-score cache per map and settings,
             # so columns sharing a directory would score every frame with ResMem again on each rerun
-            got = [run(cache, pair, keep, "default", 1, [a.replace("{no_ms}", str(no_ms)) for a in flags],
-                       outdir=f"{pair}-candidates-{i}") for i, flags in enumerate(CANDIDATES.values())]
+            got = [run(cache, pair, keep, "default", 1, flags, outdir=f"{pair}-candidates-{i}")
+                   for i, flags in enumerate(columns.values())]
             rows = [r["memorable"] for r in got]  # type: ignore[index]
             print(f"| {pair} | {keep} | {' | '.join(cell(m) for m in rows)} | "
                   f"{' / '.join(str(m['frames']) for m in rows)} |", flush=True)

@@ -256,6 +256,12 @@ class _MapWriter:
         r["whitening"] = res.whitening
         return r, (mo, po)
 
+    def measure_temporary(self, name: str, keep: np.ndarray, q_t: DescriptorTable, truth: list[set[int]],
+                          cfg: EvaluateConfig) -> dict[str, Any]:
+        """The results of the reference rows ``keep`` written as the temporary map ``name`` (a
+        baseline measured and then removed by :meth:`clean`)."""
+        return self.evaluate(self.write(name, keep=keep, temporary=True), q_t, truth, cfg)[0]
+
     def clean(self) -> None:
         """Remove the temporary maps."""
         for p in self._temporary:
@@ -573,14 +579,14 @@ def _compare_maps(run: _Run, maps: _MapWriter, map_res: MapResult, map_table: De
     res["uniform"]["note"] = ("every k-th frame: evenly spaced frame indices, as many as the memorable map, "
                               "written as a map of those frames")
     if len(phases) > 1:  # every k-th frame from its other start offsets
-        each = [res["uniform"]] + [maps.evaluate(maps.write(f"every-kth-{j}", keep=m, temporary=True), q_t,
-                                                 truth_rows, cfg)[0] for j, m in enumerate(phases[1:], 1)]
+        each = [res["uniform"]] + [maps.measure_temporary(f"every-kth-{j}", m, q_t, truth_rows, cfg)
+                                   for j, m in enumerate(phases[1:], 1)]
         res["uniform_phases"] = {**mean_std(each), "phases": [
             {"kept_indices": ref_t.frame_index[m].tolist(), "recall@1": r["recall@1"], "auc": r["auc"]}
             for m, r in zip(phases, each)], "note": (
             f"every k-th frame from {len(phases)} start offsets (the first: every k-th above), mean and std: "
             "one every-k-th map is one draw of where its frames fall")}
-    rand = [maps.evaluate(maps.write(f"random-{seed}", keep=m, temporary=True), q_t, truth_rows, cfg)[0]
+    rand = [maps.measure_temporary(f"random-{seed}", m, q_t, truth_rows, cfg)
             for seed, m in zip(range(cfg.seeds), random_masks(len(ref_t), kk, range(cfg.seeds)))]
     maps.clean()
     res["random"] = mean_std(rand)
