@@ -20,7 +20,11 @@ Pairs (``../shared/data``): ``aligned``, the Stromovka autumn map / winter query
 place i of the other; ``drive``, the same places driven as a camera records a drive, with stops,
 crawls and fast stretches, another speed profile on each drive (``stromovka_drive_*``; 1024x384,
 DINOv2, patch re-rank); ``nordland``, the Nordland summer / winter slice (64x32, thumbnails: no
-patch features, so neither the re-rank nor the drive HMM runs). ``--matcher``: ``default``,
+patch features, so neither the re-rank nor the drive HMM runs); ``drive-odometry``, the drive pair
+with the odometry a robot records beside its camera on the map drive (a ``/odom`` topic at each
+frame's place, 8 m apart: :func:`pair_files`), so the map is cut by distance where ``drive``'s is cut
+by view change; the query and the matcher are the same, so its full map is ``drive``'s.
+``--matcher``: ``default``,
 ``no-ensemble`` (``--no-ensemble``: the drive HMM in the map's whole whitening only) and ``no-hmm``
 (``--no-hmm``).
 
@@ -53,6 +57,8 @@ SHARED = ROOT.parent / "shared" / "data"
 PAIRS = {"aligned": ("stromovka_autumn.mcap", "stromovka_winter.mcap", "stromovka_truth.json"),
          "drive": ("stromovka_drive_autumn.mcap", "stromovka_drive_winter.mcap", "stromovka_drive_truth.json"),
          "nordland": ("nordland_dev_summer.mcap", "nordland_dev_winter.mcap", "nordland_dev_truth.json")}
+#: pairs whose map drive is a shared one with odometry added (:func:`pair_files`): name -> that pair
+ODOMETRY = {"drive-odometry": "drive"}
 KEEPS = ["0.5", "default"]  # "default": no --keep-fraction (one frame per VIEW_STEP_CAP of view change)
 MATCHERS = {"default": [], "no-ensemble": ["--no-ensemble"], "no-hmm": ["--no-hmm"]}
 
@@ -68,6 +74,23 @@ def candidate_flags(no_ms: Path) -> dict[str, list[str]]:
             "all, SS·ES only (no MS)": ["--candidates", "all", "--config", str(no_ms)]}
 
 
+def pair_files(cache: Path, pair: str) -> tuple[Path, Path, Path]:
+    """The reference log, query log and truth of ``pair``; an :data:`ODOMETRY` pair's reference is
+    its shared map drive with a ``/odom`` topic at each frame's place (the truth's
+    ``reference_places``, 8 m apart: :func:`benchmarks.drives.with_odometry`), written into
+    ``cache`` once."""
+    from benchmarks import drives
+
+    ref, query, truth = (SHARED / f for f in PAIRS[ODOMETRY.get(pair, pair)])
+    if pair not in ODOMETRY:
+        return ref, query, truth
+    odom = cache / f"{ref.stem}.odometry.mcap"
+    if not odom.is_file():
+        cache.mkdir(parents=True, exist_ok=True)
+        drives.with_odometry(ref, json.loads(truth.read_text())["reference_places"], odom)
+    return odom, query, truth
+
+
 def run(cache: Path, pair: str, keep: str, matcher: str, seeds: int, extra: list[str] | None = None,
         outdir: str | None = None) -> dict[str, object]:
     """``memlog evaluate`` of ``pair`` at ``--keep-fraction keep`` (``default``: memlog's default size)
@@ -75,7 +98,7 @@ def run(cache: Path, pair: str, keep: str, matcher: str, seeds: int, extra: list
     ``cache/pair``); its results.json."""
     from memlog.cli.app import main as memlog
 
-    ref, query, truth = (SHARED / f for f in PAIRS[pair])
+    ref, query, truth = pair_files(cache, pair)
     out = cache / (outdir or pair)
     out.mkdir(parents=True, exist_ok=True)
     args = ["-q", "evaluate", "--reference", str(ref), "--query", str(query), "--truth", str(truth), "-o", str(out),
@@ -121,7 +144,7 @@ def candidates_table(cache: Path, pairs: list[str], keeps: list[str]) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-drive-pair"))
-    ap.add_argument("--pairs", nargs="+", default=list(PAIRS), choices=list(PAIRS))
+    ap.add_argument("--pairs", nargs="+", default=[*PAIRS, *ODOMETRY], choices=[*PAIRS, *ODOMETRY])
     ap.add_argument("--keep", nargs="+", default=KEEPS,
                     help="sizes of the memorable map: keep fractions, or default (default: 0.5 default)")
     ap.add_argument("--matcher", nargs="+", default=["default", "no-ensemble"], choices=list(MATCHERS),

@@ -36,6 +36,7 @@ As a module::
     v = variant("stops")                      # a Variant: places, stamps_ns, noisy
     write_variant(SHARED / "nordland_dev_winter.mcap", v, "/tmp/winter-stops.mcap", positions=True)
     t = truth(v, variant("base"))             # {"matches": [...], ...}
+    with_odometry(SHARED / "stromovka_drive_autumn.mcap", places, "/tmp/autumn-odom.mcap")  # any log + its places
 
 From the command line::
 
@@ -267,6 +268,33 @@ def write_variant(source: str | os.PathLike[str], v: Variant, out: str | os.Path
             w.write(w.channel_for(src.channel), stamp, bytes(store.serialize_cdr(msg, ctype)), sequence=j)
             if odom_ch is not None and xy is not None:
                 w.write(odom_ch, stamp, bytes(store.serialize_cdr(_odometry(store, header, xy[j]), odom_t)))
+    return Path(out)
+
+
+def with_odometry(source: str | os.PathLike[str], places: npt.ArrayLike, out: str | os.PathLike[str], *,
+                  seed: int = 0) -> Path:
+    """Copy the log ``source`` (its camera topic, messages unchanged) to ``out`` with the ``/odom``
+    topic ``positions=True`` writes: one message per frame, at its log time and header stamp, at
+    the along-track position of its source place ``places[j]`` (:func:`along_track_xy`, 5 cm noise):
+    the odometry a robot records beside its camera. Deterministic for a ``seed``."""
+    from memlog.io import McapLogWriter, open_log
+
+    with open_log(source) as reader:
+        msgs = list(reader.messages([TOPIC]))
+        profile = reader.profile
+    p = np.asarray(places, dtype=np.float64)
+    if len(msgs) != len(p):
+        raise ValueError(f"{source}: {len(msgs)} frames on {TOPIC}, but {len(p)} places")
+    store = _typestore()
+    xy = along_track_xy(p) + np.random.default_rng(seed).normal(0.0, ODOM_NOISE_M, (len(p), 2))
+    odom_t = "nav_msgs/msg/Odometry"
+    with McapLogWriter(out, profile=profile) as w:
+        text, _ = store.generate_msgdef(odom_t, ros_version=2)
+        odom_ch = w.add_channel(ODOM_TOPIC, "cdr", w.add_schema(odom_t, "ros2msg", text.encode()))
+        for j, m in enumerate(msgs):
+            w.write(w.channel_for(m.channel), m.log_time, m.data, sequence=j)
+            header = store.deserialize_cdr(m.data, m.channel.msgtype).header
+            w.write(odom_ch, m.log_time, bytes(store.serialize_cdr(_odometry(store, header, xy[j]), odom_t)))
     return Path(out)
 
 

@@ -111,3 +111,26 @@ def test_every_kth_baseline_is_a_written_map(drive_pair: dict[str, Any], tmp_pat
     assert drive_pair["results"]["random"]["seeds"] == 2
     assert not list((drive_pair["eval"] / "maps").glob("random-*"))
     assert not list((drive_pair["eval"] / "maps").glob("every-kth-*"))
+
+
+def test_a_map_drive_with_odometry_keeps_its_size_and_every_frame_of_its_fast_stretch(tmp_path: Path) -> None:
+    """The map drive with the odometry a robot records beside its camera (``/odom`` at each frame's
+    place, 8 m apart: :func:`benchmarks.drives.with_odometry`): ``memlog map --keep-fraction 0.5`` cuts
+    it by distance. Its fast stretch (every other place, 16 m between frames) is longer per frame than
+    a part of the path (70 parts of 800 m), so equal parts leave some empty; the map still keeps half
+    the drive's frames, every frame of the fast stretch among them."""
+    from benchmarks.drives import with_odometry
+
+    truth = json.loads(shared("stromovka_drive_truth.json").read_text())
+    places = truth["reference_places"]
+    log = with_odometry(shared("stromovka_drive_autumn.mcap"), places, tmp_path / "autumn-odometry.mcap")
+    assert main(["-q", "map", str(log), "-o", str(tmp_path / "map.mcap"), "--keep-fraction", "0.5"]) == 0
+    kept = pq.read_table(tmp_path / "map.parquet").to_pydict()["frame_index"]
+    asked = int(np.floor(0.5 * len(places) + 0.5))
+    s = 8.0 * np.asarray(places, np.float64)  # the path, as the odometry has it (5 cm noise aside)
+    assert len(np.unique(np.minimum(np.floor(s / (s[-1] / asked)), asked - 1))) < asked  # equal parts: empty ones
+    assert len(kept) == asked
+    fast = [i for i in range(1, len(places)) if places[i] - places[i - 1] == 2]
+    assert len(fast) == 15 and {places[i] for i in fast} <= {places[i] for i in kept}  # (a repeat of it may stand in)
+    stops = [p for p in set(places) if places.count(p) > 2]  # the two stops: one frame each
+    assert all(sum(places[i] == p for i in kept) == 1 for p in stops)

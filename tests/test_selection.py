@@ -11,6 +11,7 @@ import pytest
 from numpy.typing import NDArray
 
 from memlog.errors import ConfigError, EvaluationError, MemlogError, SelectionError
+from memlog.selection.coordinates import count_cut
 from memlog.selection import (
     SELECTORS,
     CalibrateConfig,
@@ -340,6 +341,35 @@ def test_segment_by_distance_variable_speed() -> None:
             assert sel2.reason[i] == "segment"
 
 
+def test_keep_fraction_keeps_its_size_through_a_fast_stretch() -> None:
+    """Positions 8 m apart, then a stretch at 16 m per frame (the Stromovka drive pair's map drive):
+    seven tenths of the frames cut into equal parts of the path (13 m each) leaves parts of the fast
+    stretch empty; the map still gets its size, every fast-stretch frame among them."""
+    steps = np.r_[0.0, np.full(40, 8.0), np.full(15, 16.0), np.full(45, 8.0)]
+    s = np.cumsum(steps)
+    n = len(s)
+    pos = np.c_[s, np.zeros(n)]
+    rng = np.random.default_rng(5)
+    t = make_table(*rng.uniform(0.5, 1.0, (3, n)), positions=pos)  # every frame passes the minimums
+    asked = math.floor(0.7 * n + 0.5)
+    assert held_parts(s, asked) < asked  # equal parts of the path: some hold no frame
+    sel = select_segments(t, SegmentConfig(keep_fraction=0.7))
+    assert sel.info["by"] == "distance" and sel.n_kept == sel.info["n_segments"] >= asked
+    assert sel.n_kept <= asked + 2 and sel.shortfall() is None
+    assert sel.keep[41:56].all()  # the fast stretch: 16 m per frame, more than a part
+    m = round(s[-1] / sel.info["spacing_m"])
+    assert held_parts(s, m) >= asked > held_parts(s, m - 1)  # the cut is as coarse as the size allows
+    assert count_cut(s, asked) == m and count_cut(s, 10) == 10  # coarse parts all hold a frame
+    # fewer distinct places than asked (a stop is one place): as many parts as places, then a shortfall
+    still = np.r_[s[:20], np.full(60, s[20]), s[21:41]]
+    assert count_cut(still, 60) >= 60 and held_parts(still, count_cut(still, 60)) == 41
+
+
+def held_parts(value: NDArray[np.float64], m: int) -> int:
+    """How many of ``m`` equal parts of the span of ``value`` hold a value."""
+    return len(np.unique(np.minimum(np.floor(value / (value[-1] / m)), m - 1)))
+
+
 def test_segment_by_time_irregular_timestamps() -> None:
     n = 200
     rng = np.random.default_rng(9)
@@ -352,14 +382,23 @@ def test_segment_by_time_irregular_timestamps() -> None:
     bins = ((t_ns - t_ns[0]) // 1_000_000_000).astype(np.int64)
     assert sel.info["by"] == "time"
     check_one_per_bin(sel, t, bins, cfg)
-    # auto without positions uses time; keep_fraction splits the span into equal parts
+    # auto without positions uses time; keep_fraction splits the span into equal parts, and since the
+    # dropout leaves 20 equal parts with empty ones, into the fewest equal parts of which 20 hold a frame
     cfg2 = SegmentConfig(keep_fraction=0.1)
     sel2 = select_segments(t, cfg2)
     span = float(t_ns[-1] - t_ns[0])
-    bins2 = np.minimum(np.floor((t_ns - t_ns[0]) / (span / 20)), 19).astype(np.int64)
-    assert sel2.info["by"] == "time"
+
+    def parts_of(m: int) -> NDArray[np.int64]:
+        return np.minimum(np.floor((t_ns - t_ns[0]) / (span / m)), m - 1).astype(np.int64)
+
+    assert len(np.unique(parts_of(20))) < 20  # the dropout leaves empty parts
+    m = next(m for m in range(20, 200) if len(np.unique(parts_of(m))) >= 20)  # scanned one by one
+    bins2 = parts_of(m)
+    assert sel2.info["by"] == "time" and m > 20
     check_one_per_bin(sel2, t, bins2, cfg2)
-    assert sel2.info["n_segments"] == len(np.unique(bins2)) < 20  # the dropout leaves empty bins
+    assert sel2.info["n_segments"] == len(np.unique(bins2)) >= 20 == sel2.info["n_bins"]
+    assert sel2.info["spacing_s"] == pytest.approx(span / m / 1e9)
+    assert sel2.shortfall() is None
 
 
 def test_segment_by_count() -> None:

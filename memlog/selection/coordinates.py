@@ -7,7 +7,8 @@
   along the drive (capped at :data:`VIEW_STEP_CAP`); :func:`anchored_view_segments`: segments that
   end where the view left the segment's first frame's by ``view_distance``;
 * :func:`without_stops`: a coordinate with the steps into still rows removed (a stop lies at one
-  place); :func:`bin_along`: equal bins of a coordinate.
+  place); :func:`bin_along`: equal bins of a coordinate, as many of them holding a row as asked
+  (:func:`count_cut`).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from memlog.scoring.scorer import view_steps
 from memlog.selection.table import ScoreTable
 
 __all__ = ["GAP_FACTOR", "GAP_SPEED_WINDOW_S", "VIEW_STEP_CAP", "distance_coordinate", "bin_along",
-           "view_step_length", "moving_view_steps", "without_stops", "anchored_view_segments"]
+           "view_step_length", "moving_view_steps", "without_stops", "anchored_view_segments", "count_cut"]
 
 
 #: A pair of consecutive known positions further apart in time than this many typical fix intervals
@@ -110,15 +111,49 @@ def distance_coordinate(table: ScoreTable) -> tuple[NDArray[np.float64], NDArray
 
 def bin_along(value: NDArray[np.float64], spacing: float | None, n_bins: int | None) -> tuple[NDArray[np.int64], float]:
     """Bins of a non-decreasing coordinate (time or path length from 0) and their width: every
-    ``spacing``, else ``n_bins`` equal parts of its span (clipped to n_bins - 1); one bin, width
-    0, when the span is 0."""
+    ``spacing``; else ``n_bins`` segments (:func:`count_cut`); one bin, width 0, when the span is 0."""
     span = float(value[-1])
     if spacing is not None:
         return np.floor(value / spacing).astype(np.int64), float(spacing)
     if span > 0:
         assert n_bins is not None
-        return np.clip(np.floor(value * n_bins / span).astype(np.int64), 0, n_bins - 1), span / n_bins
+        parts = count_cut(value, n_bins)
+        return _equal_parts(value, parts), span / parts
     return np.zeros(len(value), dtype=np.int64), 0.0
+
+
+def _equal_parts(value: NDArray[np.float64], parts: int) -> NDArray[np.int64]:
+    """Each row's part when the span of ``value`` is cut into ``parts`` equal parts (the end in the last)."""
+    return np.clip(np.floor(value * parts / float(value[-1])).astype(np.int64), 0, parts - 1)
+
+
+def _held(value: NDArray[np.float64], parts: int) -> int:
+    """How many of ``parts`` equal parts of the span hold a row (``value`` non-decreasing)."""
+    ids = _equal_parts(value, parts)
+    return 1 + int(np.count_nonzero(np.diff(ids)))
+
+
+def count_cut(value: NDArray[np.float64], n: int) -> int:
+    """How many equal parts the span of a non-decreasing coordinate is cut into so that ``n`` of
+    them hold a row: ``n`` itself unless a step of the coordinate is longer than a part (the robot
+    covered two parts between frames: a fast stretch by distance, a sudden change of view, a
+    position gap), which leaves a part without a row; then, by doubling and bisection, a number of
+    parts of which at least ``n`` hold a row while one part fewer leaves fewer than ``n`` (a few
+    more than ``n`` where one more part gains several), or, when the coordinate has fewer than ``n``
+    distinct values, as many as it has. So a
+    map asked for ``n`` frames (``--keep-fraction``) gets them: its frames go to the rest of the
+    drive, not missing where it moved fast (on the Stromovka drive pair with odometry, half the
+    frames: 64 instead of 70 kept before this rule)."""
+    target = min(n, 1 + int(np.count_nonzero(np.diff(value))))
+    if _held(value, n) >= target:
+        return n
+    lo, hi = n, 2 * n
+    while _held(value, hi) < target:
+        lo, hi = hi, 2 * hi
+    while hi - lo > 1:  # _held(lo) < target <= _held(hi)
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if _held(value, mid) >= target else (mid, hi)
+    return hi
 
 
 #: A step of view change counts at most this chord (cosine similarity 0.875 of consecutive view

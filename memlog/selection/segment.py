@@ -20,8 +20,12 @@ With ``keep_fraction=F`` instead of a spacing, the number of segments is
 ``S = max(1, floor(F*N + 0.5))`` and the drive's total length (metres, view change, seconds or
 frames) is split into S equal parts; ``by="auto"`` then uses distance when positions exist and
 the robot moved, else the view change when the table has view vectors, else time when the
-timestamps span > 0, else frame count. Bins that hold no frame (the robot jumped, a time gap)
-are not segments.
+timestamps span > 0, else frame count. A part that holds no frame (the robot covered more than a
+part between two frames: a fast stretch, a time gap) is no segment; so that the map still gets its
+S frames, the length is then cut into the fewest equal parts of which S hold a frame
+(:func:`memlog.selection.coordinates.count_cut`; as many as the drive has distinct places when it
+has fewer), and a fast stretch keeps every frame while the rest of the drive gets the frames the
+empty parts would have lost.
 
 Stops. A frame that stood still (:func:`memlog.scoring.motion.find_stops`, the rule matching uses
 too: by the log's own motion when it knows every frame of the drive (odometry, poses, twists,
