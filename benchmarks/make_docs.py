@@ -201,7 +201,8 @@ BENCHES: list[Bench] = [
           ("python", "benchmarks/drive_pair.py", "--cache", "{work}/drive-pair"),
           "maps of every size through `memlog evaluate` (every row a map `memlog map` writes, matched as `memlog "
           "localize` matches it), with and without the whitening ensemble: the Stromovka pair, the Stromovka drive pair "
-          "with stops, crawls and fast stretches, and Nordland; half maps and memlog's default size",
+          "with stops, crawls and fast stretches, Nordland, and the drive pair with odometry on its map drive; half "
+          "maps and memlog's default size",
           20, ("shared", "models"), defaults_anchor="drives-as-cameras-record-them"),
     Bench("drive_pair_candidates",
           ("python", "benchmarks/drive_pair.py", "--cache", "{work}/drive-pair", "--table", "candidates", "--pairs",
@@ -214,7 +215,8 @@ BENCHES: list[Bench] = [
           ("python", "benchmarks/whitening_spread.py", "--cache", "{work}/matcher-defaults"),
           "how far a map's R@1 moves with the frames its whitening is fitted on (8 refits on 85 % samples of the map's "
           "own frames), matched once and with the whitening ensemble (also over the query's moving frames, a stop "
-          "once): the Stromovka pairs, full, default, half and quarter maps",
+          "once): the Stromovka pairs (the drive pair also with odometry on its map drive), full, default, half and "
+          "quarter maps",
           10, ("shared", "models"), defaults_anchor="the-whitening-ensemble"),
     Bench("drive_maps",
           ("python", "benchmarks/drive_maps.py", "--scores", "{scores}", "--cache", "{work}/drive-maps"),

@@ -70,14 +70,14 @@ def metrics(indices: np.ndarray, confidence: np.ndarray, truth: list[set[int]]) 
     return {"r1": float(ok.mean()), "r5": float(r5), "auc": curve.auc, "p10": p_at(0.1), "p50": p_at(0.5)}
 
 
-def _map(cache: Path, pair: str, which: str, args: Sequence[str] = ()) -> Path:
-    """``memlog map`` of the pair's reference at a keep fraction, with more ``args`` (written once
-    into ``cache``: give each set of ``args`` a cache of its own)."""
+def _map(cache: Path, pair: str, which: str, args: Sequence[str] = (), ref: Path | None = None) -> Path:
+    """``memlog map`` of the pair's reference (or of the log ``ref``) at a keep fraction, with more
+    ``args`` (written once into ``cache``: give each set of ``args`` a cache of its own)."""
     out = cache / f"{pair}-{which}.mcap"
     if not out.with_suffix(".parquet").is_file() or not _current(out.with_suffix(".parquet")):
         from memlog.cli.app import main as memlog
 
-        ref = SHARED / PAIRS[pair][0]
+        ref = ref or SHARED / PAIRS[pair][0]
         size = [] if FRACTIONS[which] is None else ["--keep-fraction", str(FRACTIONS[which])]
         if memlog(["-q", "map", str(ref), "-o", str(out), *size, *args]) != 0:
             raise SystemExit(f"memlog map {ref} failed")

@@ -11,9 +11,10 @@ the ensemble (the default). R@1 over every query frame, map-only, truth ±1 plac
 ensemble, over the query's moving frames (each stop's first frame once: a stop's frames share one
 decision, so a long stop weighs as one frame there — a steadier figure for comparing matchers).
 
-Maps: ``memlog map`` of the Stromovka autumn drive, frame-aligned and as a drive with stops
-(``benchmarks/matcher_defaults.py``'s maps, cached in ``--cache``): every frame, memlog's half and
-quarter maps and its default size. The descriptors before whitening are described here (DINOv2-GeM;
+Maps: ``memlog map`` of the Stromovka autumn drive, frame-aligned, as a drive with stops, and that
+drive with odometry (``drive_pair.py``'s ``drive-odometry``: an ``/odom`` topic at each frame's place,
+so the map is cut by distance) (``benchmarks/matcher_defaults.py``'s maps, cached in ``--cache``):
+every frame, memlog's half and quarter maps and its default size. The descriptors before whitening are described here (DINOv2-GeM;
 the query's patch features projected by each map's PCA, as ``localize`` does) and cached beside them.
 
     python benchmarks/whitening_spread.py          # Markdown table (about 10 minutes on 2 cores)
@@ -33,6 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.drive_pair import pair_files  # noqa: E402
 from benchmarks.matcher_defaults import PAIRS, SHARED, _map, metrics  # noqa: E402
 
 MAPS = ("full", "default", "half", "quarter")
@@ -76,14 +78,16 @@ def main() -> int:
     a.cache.mkdir(parents=True, exist_ok=True)
     print("| pair | map (frames) | once: own | once: refits | ensemble: own | ensemble: refits "
           "| ensemble: refits, moving frames |\n|---|---|---|---|---|---|---|")
-    for pair in ("stromovka", "stromovka-drive"):
-        truth = [set(m) for m in json.loads((SHARED / PAIRS[pair][2]).read_text())["matches"]]
-        ref_raw = _raw(a.cache, SHARED / PAIRS[pair][0], f"{pair}-reference", None)
+    for pair in ("stromovka", "stromovka-drive", "stromovka-drive-odometry"):
+        ref_log, q_log, truth_file = (pair_files(a.cache, "drive-odometry") if pair.endswith("-odometry")
+                                      else (SHARED / f for f in PAIRS[pair]))
+        truth = [set(m) for m in json.loads(truth_file.read_text())["matches"]]
+        ref_raw = _raw(a.cache, ref_log, f"{pair}-reference", None)
         for which in MAPS:
-            parquet = _map(a.cache, pair, which)
+            parquet = _map(a.cache, pair, which, ref=ref_log)
             ref = read_descriptors(parquet)
             still = map_still_distance(ref, parquet, SequenceConfig())
-            q_raw = _raw(a.cache, SHARED / PAIRS[pair][1], f"{pair}-{which}-query", ref.patch_pca, still)
+            q_raw = _raw(a.cache, q_log, f"{pair}-{which}-query", ref.patch_pca, still)
             rows = np.searchsorted(ref_raw.frame_index, ref.frame_index)
             raw = ref_raw.descriptors[rows]
             whitenings: list[Any] = [ref.whitening]

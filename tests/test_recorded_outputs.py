@@ -29,3 +29,9 @@ def test_the_comparison_sees_a_change() -> None:
     assert len(differences(before, {"a": [1, 2.0, "x"], "b": {"c": 0.501}})) == 1
     assert len(differences(before, {"a": [1, 2.0], "b": {"c": 0.5}})) == 1
     assert len(differences(before, {"a": [1, 2.0, "x"], "b": {}})) == 1
+    # a float fit's hash (another CPU's SVD bits) is compared as a hash; any other hash exactly
+    h1, h2 = "a" * 64, "b" * 64
+    assert differences({"m": {"whitening": {"sha256": h1}, "input_sha256": h1}},
+                       {"m": {"whitening": {"sha256": h2}, "input_sha256": h1}}) == []
+    assert len(differences({"input_sha256": h1}, {"input_sha256": h2})) == 1
+    assert len(differences({"patch_pca": h1}, {"patch_pca": "none"})) == 1
