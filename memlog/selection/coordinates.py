@@ -133,6 +133,10 @@ def _held(value: NDArray[np.float64], parts: int) -> int:
     return 1 + int(np.count_nonzero(np.diff(ids)))
 
 
+#: The finest cut :func:`count_cut` makes (parts of a 2**-40 share of the drive).
+MAX_PARTS = 2**40
+
+
 def count_cut(value: NDArray[np.float64], n: int) -> int:
     """How many equal parts the span of a non-decreasing coordinate is cut into so that ``n`` of
     them hold a row: ``n`` itself unless a step of the coordinate is longer than a part (the robot
@@ -140,15 +144,15 @@ def count_cut(value: NDArray[np.float64], n: int) -> int:
     position gap), which leaves a part without a row; then, by doubling and bisection, a number of
     parts of which at least ``n`` hold a row while one part fewer leaves fewer than ``n`` (a few
     more than ``n`` where one more part gains several), or, when the coordinate has fewer than ``n``
-    distinct values, as many as it has. So a
-    map asked for ``n`` frames (``--keep-fraction``) gets them: its frames go to the rest of the
-    drive, not missing where it moved fast (on the Stromovka drive pair with odometry, half the
-    frames: 64 instead of 70 kept before this rule)."""
+    distinct values, as many as it has (at most :data:`MAX_PARTS` parts: values closer than a
+    part of that many are one place). So a map asked for ``n`` frames (``--keep-fraction``) gets
+    them: its frames go to the rest of the drive, not missing where it moved fast (on the Stromovka
+    drive pair with odometry, half the frames: 64 instead of 70 kept before this rule)."""
     target = min(n, 1 + int(np.count_nonzero(np.diff(value))))
     if _held(value, n) >= target:
         return n
     lo, hi = n, 2 * n
-    while _held(value, hi) < target:
+    while _held(value, hi) < target and hi < MAX_PARTS:
         lo, hi = hi, 2 * hi
     while hi - lo > 1:  # _held(lo) < target <= _held(hi)
         mid = (lo + hi) // 2
