@@ -246,14 +246,9 @@ def write_variant(source: str | os.PathLike[str], v: Variant, out: str | os.Path
     store = _typestore()
     ctype = msgs[0].channel.msgtype
     decoded = {}
-    odom_t = "nav_msgs/msg/Odometry"
     xy = along_track_xy(v.places) + rng.normal(0.0, ODOM_NOISE_M, (len(v), 2)) if positions else None
     with McapLogWriter(out, profile=profile) as w:
-        odom_ch = None
-        if positions:
-            text, _ = store.generate_msgdef(odom_t, ros_version=2)
-            sid = w.add_schema(odom_t, "ros2msg", text.encode())
-            odom_ch = w.add_channel(ODOM_TOPIC, "cdr", sid)
+        odom_ch = _odometry_channel(w, store) if positions else None
         for j, (p, t) in enumerate(zip(v.places, v.stamps_ns)):
             src = msgs[int(p)]
             m = decoded.get(int(p))
@@ -267,7 +262,7 @@ def write_variant(source: str | os.PathLike[str], v: Variant, out: str | os.Path
             msg = store.types[ctype](header=header, format=m.format, data=data)
             w.write(w.channel_for(src.channel), stamp, bytes(store.serialize_cdr(msg, ctype)), sequence=j)
             if odom_ch is not None and xy is not None:
-                w.write(odom_ch, stamp, bytes(store.serialize_cdr(_odometry(store, header, xy[j]), odom_t)))
+                _write_odometry(w, odom_ch, store, stamp, header, xy[j])
     return Path(out)
 
 
@@ -287,15 +282,27 @@ def with_odometry(source: str | os.PathLike[str], places: npt.ArrayLike, out: st
         raise ValueError(f"{source}: {len(msgs)} frames on {TOPIC}, but {len(p)} places")
     store = _typestore()
     xy = along_track_xy(p) + np.random.default_rng(seed).normal(0.0, ODOM_NOISE_M, (len(p), 2))
-    odom_t = "nav_msgs/msg/Odometry"
     with McapLogWriter(out, profile=profile) as w:
-        text, _ = store.generate_msgdef(odom_t, ros_version=2)
-        odom_ch = w.add_channel(ODOM_TOPIC, "cdr", w.add_schema(odom_t, "ros2msg", text.encode()))
+        odom_ch = _odometry_channel(w, store)
         for j, m in enumerate(msgs):
             w.write(w.channel_for(m.channel), m.log_time, m.data, sequence=j)
             header = store.deserialize_cdr(m.data, m.channel.msgtype).header
-            w.write(odom_ch, m.log_time, bytes(store.serialize_cdr(_odometry(store, header, xy[j]), odom_t)))
+            _write_odometry(w, odom_ch, store, m.log_time, header, xy[j])
     return Path(out)
+
+
+ODOM_TYPE = "nav_msgs/msg/Odometry"
+
+
+def _odometry_channel(w: Any, store: Any) -> int:
+    """The ``/odom`` channel (``nav_msgs/msg/Odometry``, CDR) added to the MCAP writer ``w``."""
+    text, _ = store.generate_msgdef(ODOM_TYPE, ros_version=2)
+    return int(w.add_channel(ODOM_TOPIC, "cdr", w.add_schema(ODOM_TYPE, "ros2msg", text.encode())))
+
+
+def _write_odometry(w: Any, channel: int, store: Any, stamp: int, header: Any, xy: npt.NDArray[np.float64]) -> None:
+    """One odometry message at ``xy`` (header ``header``) on ``channel`` at log time ``stamp``."""
+    w.write(channel, stamp, bytes(store.serialize_cdr(_odometry(store, header, xy), ODOM_TYPE)))
 
 
 def _odometry(store: Any, header: Any, xy: npt.NDArray[np.float64]) -> Any:

@@ -25,6 +25,7 @@ import pytest
 
 from memlog.cli.app import main
 from tests.conftest import shared
+from tests.test_selection import held_parts
 
 
 def _scores(matches: Path, truth: list[list[int]]) -> tuple[float, float]:
@@ -128,7 +129,7 @@ def test_a_map_drive_with_odometry_keeps_its_size_and_every_frame_of_its_fast_st
     kept = pq.read_table(tmp_path / "map.parquet").to_pydict()["frame_index"]
     asked = int(np.floor(0.5 * len(places) + 0.5))
     s = 8.0 * np.asarray(places, np.float64)  # the path, as the odometry has it (5 cm noise aside)
-    assert len(np.unique(np.minimum(np.floor(s / (s[-1] / asked)), asked - 1))) < asked  # equal parts: empty ones
+    assert held_parts(s, asked) < asked  # equal parts: empty ones
     assert len(kept) == asked
     fast = [i for i in range(1, len(places)) if places[i] - places[i - 1] == 2]
     assert len(fast) == 15 and {places[i] for i in fast} <= {places[i] for i in kept}  # (a repeat of it may stand in)
