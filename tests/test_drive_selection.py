@@ -17,7 +17,8 @@ import pytest
 from memlog.scoring.scorer import view_vector
 from memlog.selection import ScoreTable, select
 from memlog.selection.segment import SEGMENT_DEFAULTS
-from memlog.selection.baselines import distance_uniform_mask, uniform_mask
+from memlog.selection.baselines import distance_uniform_mask, uniform_indices, uniform_mask
+from memlog.selection.coordinates import count_cut
 from tests.conftest import shared
 
 W, H = 128, 64  # camera frame
@@ -234,30 +235,45 @@ def test_a_crawl_gets_fewer_map_frames_than_every_kth_frame_gives_it() -> None:
     assert every_kth == k // 2 and on_crawl <= k // 4, (on_crawl, every_kth)
 
 
-def test_distance_uniform_mask_picks_the_frame_nearest_each_even_mark() -> None:
-    """Against a brute-force search over the travelled distance (variable speed, a stop, a NaN fix)."""
+def test_distance_uniform_mask_keeps_k_frames_nearest_the_middles_of_equal_parts() -> None:
+    """Against a brute-force search over the travelled distance (variable speed, a stop, a NaN fix,
+    a fast stretch whose frames are further apart than a part): the equal parts a map of K frames
+    is cut into, of which K hold a frame, and the frame nearest each held part's middle."""
     rng = np.random.default_rng(0)
-    step = np.concatenate([rng.uniform(0.5, 2.0, 40), np.zeros(20), rng.uniform(2.0, 4.0, 40)])
+    step = np.concatenate([rng.uniform(0.5, 2.0, 40), np.zeros(20), rng.uniform(2.0, 4.0, 30),
+                           np.full(10, 12.0)])
     pos = np.zeros((len(step), 2))
     pos[:, 0] = np.cumsum(step)
     pos[:, 1] = 0.3 * np.sin(pos[:, 0] / 7)
     pos[55] = np.nan  # an unknown fix carries the distance before it
-    for k in (5, 17, 33):
+    s = np.zeros(len(pos))
+    last = 0.0
+    prev = pos[0]
+    for i in range(1, len(pos)):
+        if np.all(np.isfinite(pos[i])):
+            last += float(np.linalg.norm(pos[i] - prev))
+            prev = pos[i]
+        s[i] = last
+    places = len(set(s.tolist()))
+    for k in (5, 17, 33, 60, places, places + 10):
         mask = distance_uniform_mask(pos, k)
         assert mask is not None
-        s = np.zeros(len(pos))
-        last = 0.0
-        prev = pos[0]
-        for i in range(1, len(pos)):
-            if np.all(np.isfinite(pos[i])):
-                last += float(np.linalg.norm(pos[i] - prev))
-                prev = pos[i]
-            s[i] = last
-        want = set()
-        for target in np.linspace(0, s[-1], k):
-            d = np.abs(s - target)
-            want.add(int(np.flatnonzero(d == d.min())[0]))  # the earliest of the nearest frames
-        assert set(np.flatnonzero(mask).tolist()) == want, k
+        want_k = min(k, places)
+        parts = count_cut(s, k)  # checked here by counting: K parts held, one part fewer holds fewer
+        part = [min(int(x * parts / s[-1]), parts - 1) for x in s]
+        assert len(set(part)) >= want_k
+        assert parts == k or len({min(int(x * (parts - 1) / s[-1]), parts - 2) for x in s}) < want_k
+        want = []
+        for p in sorted(set(part)):
+            rows = [i for i in range(len(s)) if part[i] == p]
+            d = [abs(s[i] - (p + 0.5) * s[-1] / parts) for i in rows]
+            want.append(rows[d.index(min(d))])  # the earliest of the nearest
+        if len(want) > want_k:
+            want = [want[i] for i in uniform_indices(len(want), want_k)]
+        assert np.flatnonzero(mask).tolist() == want, k
+        assert mask.sum() == want_k, k  # the size asked, through the fast stretch
+        if k >= 60:  # parts shorter than the fast stretch's 12 m steps: every one of its frames kept
+            assert mask[-10:].all(), k
     assert distance_uniform_mask(np.ones((10, 2)), 3) is None  # no travelled distance
 
 

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from memlog.errors import ConfigError
+from memlog.selection.coordinates import bin_along
 from memlog.selection.table import ScoreTable, Selection
 
 __all__ = [
@@ -85,11 +86,13 @@ def phase_masks(n: int, k: int, phases: int = MAX_PHASES) -> NDArray[np.bool_]:
 
 
 def distance_uniform_mask(positions: Any, k: int) -> NDArray[np.bool_] | None:
-    """Frames evenly spaced along the travelled distance: the frame nearest each of K points
-    spaced evenly from the first to the last position (``positions`` [N, 2|3] metres, NaN rows
-    unknown: they carry the last known distance; ties: the earlier frame). Where the drive
-    jumped two points can share their nearest frame, so the map may hold fewer than K frames.
-    None when there is no travelled distance."""
+    """Frames evenly spaced along the travelled distance (``positions`` [N, 2|3] metres, NaN rows
+    unknown: they carry the last known distance): the distance is cut as a map of K frames is cut
+    by distance (:func:`~memlog.selection.coordinates.count_cut`: equal parts of which K hold a
+    frame, so a fast stretch whose frames are further apart than a part does not shrink the map), and each part that holds a frame keeps the one nearest its middle (ties, and a stop's
+    frames at one distance: the earlier). K frames, fewer only where the drive has fewer distinct
+    places; where one more part gains several, the parts' frames are thinned evenly to K. None when
+    there is no travelled distance."""
     pos = np.asarray(positions, dtype=np.float64)
     n, k = _check(len(pos), k)
     rows = np.flatnonzero(np.all(np.isfinite(pos), axis=1))
@@ -100,13 +103,16 @@ def distance_uniform_mask(positions: Any, k: int) -> NDArray[np.bool_] | None:
         return None
     where = np.searchsorted(rows, np.arange(n), side="right") - 1
     s = np.where(where >= 0, s_known[np.clip(where, 0, None)], 0.0)  # non-decreasing
-    targets = np.linspace(0.0, float(s_known[-1]), k)
-    right = np.clip(np.searchsorted(s, targets, side="left"), 0, n - 1)
-    left = np.clip(right - 1, 0, n - 1)
-    # the first frame at the nearer distance (s is non-decreasing: the leftmost frame of a run)
-    near = np.where(np.abs(s[left] - targets) <= np.abs(s[right] - targets), left, right)
-    near = np.searchsorted(s, s[near], side="left")
-    return _mask(n, near.astype(np.int64))
+    part, width = bin_along(s, None, k)
+    starts = np.flatnonzero(np.diff(part, prepend=-1))  # each held part's first row
+    ends = np.append(starts[1:], n)
+    keep = np.empty(len(starts), dtype=np.int64)
+    for j, (a, b) in enumerate(zip(starts, ends)):
+        middle = (part[a] + 0.5) * width
+        keep[j] = a + int(np.argmin(np.abs(s[a:b] - middle)))  # the first of the nearest
+    if len(keep) > k:
+        keep = keep[uniform_indices(len(keep), k)]
+    return _mask(n, keep)
 
 
 def random_indices(n: int, k: int, seed: int) -> NDArray[np.int64]:
