@@ -13,7 +13,9 @@ its full and memorable rows equal ``memlog localize`` against the maps ``memlog 
 * **memorable**: ``memlog map --keep-fraction K`` (memlog's selection), or ``memlog map`` (``default``:
   its default size, one frame per ``VIEW_STEP_CAP`` of the drive's view change);
 * **every k-th**, **its start offsets** (mean ± std of R@1 over every k-th frame shifted along the
-  drive: ``memlog.selection.phase_masks``; "-" where there is one offset) and **random** (mean of
+  drive: ``memlog.selection.phase_masks``; "-" where there is one offset), **by distance** (evenly
+  spaced along the travelled distance: the map drive's positions cut as ``memlog map`` cuts them by
+  distance, each part's frame nearest its middle; "-" without positions) and **random** (mean of
   ``--seeds`` maps): maps of the memorable map's size.
 
 Pairs (``../shared/data``): ``aligned``, the Stromovka autumn map / winter query, frame i of one is
@@ -158,8 +160,8 @@ def main() -> int:
     if a.table == "candidates":
         candidates_table(a.cache, a.pairs, a.keep)
         return 0
-    print("| pair | keep | matcher | full | memorable | every k-th | every k-th: start offsets, R@1 | random | "
-          "frames (full / memorable) | s |\n|---|---|---|---|---|---|---|---|---|---|")
+    print("| pair | keep | matcher | full | memorable | every k-th | every k-th: start offsets, R@1 | by distance | "
+          "random | frames (full / memorable) | s |\n|---|---|---|---|---|---|---|---|---|---|---|")
     for pair in a.pairs:
         for keep in a.keep:
             for matcher in a.matcher:
@@ -168,7 +170,8 @@ def main() -> int:
                 r = run(a.cache, pair, keep, matcher, a.seeds)
                 rows = {k: r[k] for k in ("full", "memorable", "uniform", "random")}
                 print(f"| {pair} | {keep} | {matcher} | {cell(rows['full'])} | {cell(rows['memorable'])} | "
-                      f"{cell(rows['uniform'])} | {spread(r.get('uniform_phases'))} | {cell(rows['random'])} | "
+                      f"{cell(rows['uniform'])} | {spread(r.get('uniform_phases'))} | "
+                      f"{cell(r['uniform_distance']) if 'uniform_distance' in r else '-'} | {cell(rows['random'])} | "
                       f"{rows['full']['frames']} / "
                       f"{rows['memorable']['frames']} | {r['bench_seconds']:.0f} |", flush=True)
     return 0
