@@ -114,19 +114,27 @@ def test_every_kth_baseline_is_a_written_map(drive_pair: dict[str, Any], tmp_pat
     assert not list((drive_pair["eval"] / "maps").glob("every-kth-*"))
 
 
-def test_a_map_drive_with_odometry_keeps_its_size_and_every_frame_of_its_fast_stretch(tmp_path: Path) -> None:
-    """The map drive with the odometry a robot records beside its camera (``/odom`` at each frame's
-    place, 8 m apart: :func:`benchmarks.drives.with_odometry`): ``memlog map --keep-fraction 0.5`` cuts
-    it by distance. Its fast stretch (every other place, 16 m between frames) is longer per frame than
-    a part of the path (70 parts of 800 m), so equal parts leave some empty; the map still keeps half
-    the drive's frames, every frame of the fast stretch among them."""
+@pytest.fixture(scope="module")
+def odometry_half_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``memlog map --keep-fraction 0.5`` of the map drive with the odometry a robot records beside
+    its camera (``/odom`` at each frame's place, 8 m apart: :func:`benchmarks.drives.with_odometry`);
+    the directory holding ``map.mcap`` and ``map.parquet``."""
     from benchmarks.drives import with_odometry
 
-    truth = json.loads(shared("stromovka_drive_truth.json").read_text())
-    places = truth["reference_places"]
-    log = with_odometry(shared("stromovka_drive_autumn.mcap"), places, tmp_path / "autumn-odometry.mcap")
-    assert main(["-q", "map", str(log), "-o", str(tmp_path / "map.mcap"), "--keep-fraction", "0.5"]) == 0
-    kept = pq.read_table(tmp_path / "map.parquet").to_pydict()["frame_index"]
+    d = tmp_path_factory.mktemp("odometry-map")
+    places = json.loads(shared("stromovka_drive_truth.json").read_text())["reference_places"]
+    log = with_odometry(shared("stromovka_drive_autumn.mcap"), places, d / "autumn-odometry.mcap")
+    assert main(["-q", "map", str(log), "-o", str(d / "map.mcap"), "--keep-fraction", "0.5"]) == 0
+    return d
+
+
+def test_a_map_drive_with_odometry_keeps_its_size_and_every_frame_of_its_fast_stretch(odometry_half_map: Path) -> None:
+    """The map drive with odometry is cut by distance. Its fast stretch (every other place, 16 m
+    between frames) is longer per frame than a part of the path (70 parts of 800 m), so equal parts
+    leave some empty; the map still keeps half the drive's frames, every frame of the fast stretch
+    among them."""
+    places = json.loads(shared("stromovka_drive_truth.json").read_text())["reference_places"]
+    kept = pq.read_table(odometry_half_map / "map.parquet").to_pydict()["frame_index"]
     asked = int(np.floor(0.5 * len(places) + 0.5))
     s = 8.0 * np.asarray(places, np.float64)  # the path, as the odometry has it (5 cm noise aside)
     assert held_parts(s, asked) < asked  # equal parts: empty ones
@@ -135,3 +143,21 @@ def test_a_map_drive_with_odometry_keeps_its_size_and_every_frame_of_its_fast_st
     assert len(fast) == 15 and {places[i] for i in fast} <= {places[i] for i in kept}  # (a repeat of it may stand in)
     stops = [p for p in set(places) if places.count(p) > 2]  # the two stops: one frame each
     assert all(sum(places[i] == p for i in kept) == 1 for p in stops)
+
+
+def test_the_last_frames_of_a_drive_find_the_end_of_the_map(odometry_half_map: Path, tmp_path: Path) -> None:
+    """``memlog localize`` of the winter drive against that map: its last five frames (places
+    96-100) each go to the right place. Their windows have frames on one side only, and those
+    frames' single-frame candidates rarely hold the map's last places, so the cut windows' votes
+    proposed none of them: the drive HMM had no place to continue the path into and sent the last
+    three frames back to places 17-21 (with the map's own whitening and with each of 8 refits of
+    it; now each window cut by the drive's end also proposes what the same-length window slid along
+    the drive votes for: ``memlog.matching.voting``)."""
+    truth = json.loads(shared("stromovka_drive_truth.json").read_text())["matches"]
+    out = tmp_path / "matches.parquet"
+    assert main(["-q", "localize", str(odometry_half_map / "map.parquet"), str(shared("stromovka_drive_winter.mcap")),
+                 "-o", str(out), "--map", str(odometry_half_map / "map.mcap")]) == 0
+    t = pq.read_table(out).to_pydict()
+    best = {q: r for q, r, k in zip(t["query_id"], t["ref_id"], t["rank"]) if k == 0}
+    last = range(len(truth) - 5, len(truth))
+    assert [best[q] in set(truth[q]) for q in last] == [True] * 5, [(q, best[q], truth[q]) for q in last]

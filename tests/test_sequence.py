@@ -436,3 +436,33 @@ def test_the_map_is_cut_into_runs_like_the_query() -> None:
     q = _table(desc[20:30], np.arange(10), np.arange(10) * 400_000_000)
     assert match_tables(q, _table(desc, frames, gap_ns), SequenceConfig(length=3), k=1).info["map_runs"] == 2
     assert match_tables(q, sparse, SequenceConfig(length=3), k=1).info["map_runs"] == 1
+
+
+def test_a_window_cut_by_its_runs_end_slides_along_the_run_and_keeps_its_length() -> None:
+    """``window_rows`` against windows built by hand: offline, each centre's window is the 2n+1
+    consecutive rows of its run nearest to being centred on it (a window cut by the run's start
+    or end slides along the run; a run shorter than the window is the whole run); causal, the n
+    rows before the centre and the centre, never slid; without ``slide``, the centred window cut
+    at the run's ends."""
+    from memlog.matching.paths import _run_bounds, window_rows
+
+    labels = np.array([0] * 30 + [1] * 7 + [2] * 25, dtype=np.int64)  # runs of 30, 7 (< 21) and 25 rows
+    qc = np.arange(len(labels), dtype=np.float64)
+    lo, hi = _run_bounds(labels, qc)
+    n = 10
+    centres = np.arange(len(labels), dtype=np.int64)
+    for offs, slide in ((np.arange(-n, n + 1), True), (np.arange(-n, n + 1), False), (np.arange(-n, 1), True)):
+        t, valid = window_rows(centres, offs, lo, hi, slide and offs[-1] > 0)
+        for c in centres:
+            a, b = int(lo[c]), int(hi[c])
+            if offs[-1] == 0:  # causal
+                want = list(range(max(a, c - n), c + 1))
+            elif slide:
+                start = min(max(c - n, a), max(a, b - (2 * n + 1)))
+                want = list(range(start, min(b, start + 2 * n + 1)))
+            else:
+                want = list(range(max(a, c - n), min(b, c + n + 1)))
+            got = t[c][valid[c]].tolist()
+            assert got == want, (c, slide, got, want)
+            assert c in got
+    assert window_rows(centres, np.arange(-n, n + 1), lo, hi, True)[1].sum(axis=1)[:30].tolist() == [21] * 30

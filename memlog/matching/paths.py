@@ -99,10 +99,27 @@ def _offsets(cfg: SequenceConfig) -> I64:
     return np.arange(-n, 1 if cfg.causal else n + 1, dtype=np.int64)
 
 
+def window_rows(centres: I64, offs: I64, run_lo: I64, run_hi: I64, slide: bool) -> tuple[I64, BoolArray]:
+    """Rows ``[B, W]`` of each centre's window (``centres + offs``, offset order) and which lie in
+    the centre's run. With ``slide`` (offline matching, where the window reaches both ways), a
+    window cut by its run's start or end slides along the run so that it keeps its length, all its
+    extra frames on the one side there is (what proposes places for a drive's first and last frames:
+    :func:`~memlog.matching.voting._with_end_votes`; the paths are scored along the cut window,
+    whose frames are the nearest). The centre stays in its window; a run shorter than the window
+    is the whole run."""
+    centres = np.asarray(centres, dtype=np.int64)
+    t = centres[:, None] + offs[None, :]
+    lo, hi = run_lo[centres][:, None], run_hi[centres][:, None]
+    if slide and len(offs):
+        shift = np.maximum(lo[:, 0] - t[:, 0], 0) - np.maximum(t[:, -1] - (hi[:, 0] - 1), 0)
+        t = t + shift[:, None]
+    return t, (t >= lo) & (t < hi)
+
+
 def _window(p: _Problem, i: int, offs: I64) -> tuple[I64, F64]:
-    """Rows of query ``i``'s window (offset order) and their coordinate minus ``i``'s."""
-    t = i + offs
-    t = t[(t >= p.run_lo[i]) & (t < p.run_hi[i])]
+    """Rows of query ``i``'s window (offset order, :func:`window_rows`) and their coordinate minus ``i``'s."""
+    t, valid = window_rows(np.array([i]), offs, p.run_lo, p.run_hi, False)
+    t = t[0][valid[0]]
     return t, p.qc[t] - p.qc[i]
 
 
@@ -140,8 +157,7 @@ def _on_map(p: _Problem, x: npt.NDArray[np.float64]) -> BoolArray:
 def _windows(p: _Problem, centres: I64, offs: I64) -> tuple[I64, BoolArray, F64]:
     """Rows ``[B, W]`` of each centre's window (offset order; invalid slots hold the centre),
     which slots are inside the run, and their coordinate minus the centre's."""
-    t = centres[:, None] + offs[None, :]
-    valid = (t >= p.run_lo[centres][:, None]) & (t < p.run_hi[centres][:, None])
+    t, valid = window_rows(centres, offs, p.run_lo, p.run_hi, False)
     t = np.where(valid, t, centres[:, None])
     return t, valid, p.qc[t] - p.qc[centres][:, None]
 

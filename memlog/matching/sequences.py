@@ -13,7 +13,7 @@ from memlog.descriptors.search import Database, _as_2d, _rescore, _row_norms, ma
 from memlog.errors import DescriptorError
 from memlog.matching.config import BoolArray, F32, F64, FALLBACK_REASONS, I64, MAX_LENGTH_SCALE, SequenceConfig, SequenceMatch, VOTE_ELEMS
 from memlog.matching.paths import _Problem, _offsets, _run_bounds, _score_constant, _score_dp, _speed_grid, _stats, _windows
-from memlog.matching.voting import _place, _votes
+from memlog.matching.voting import _place, _votes, _with_end_votes
 
 if TYPE_CHECKING:
     from memlog.descriptors.approx import IVFIndex
@@ -268,7 +268,7 @@ def _match_windows(p: _Problem, use: BoolArray, ci: I64, z: F64, m: _MapOrder, k
     block = max(1, min(cfg.block, VOTE_ELEMS // max(1, len(offs) * cfg.candidates * len(p.speeds))))
     for a in range(0, len(centres_all), block):
         centres = centres_all[a : a + block]
-        places, vbest = _votes(p, centres, offs, cand, gain, n_places)
+        places, vbest = _with_end_votes(p, centres, offs, cand, gain, *_votes(p, centres, offs, cand, gain, n_places))
         if cfg.experimental.path == "constant":
             sc, xc, sp = _score_constant(p, centres, offs, places, vbest)
         else:

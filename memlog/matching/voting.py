@@ -8,23 +8,24 @@ import numpy as np
 
 from memlog.matching.config import BoolArray, F64, I64, TOP_VOTES
 from memlog.matching.coordinates import _nearest
-from memlog.matching.paths import _Problem, _on_map
+from memlog.matching.paths import _Problem, _on_map, window_rows
 
 __all__: list[str] = []
 
 
 
-def _votes(p: _Problem, centres: I64, offs: I64, cand: I64, gain: F64, n_places: int) -> tuple[I64, I64]:
+def _votes(p: _Problem, centres: I64, offs: I64, cand: I64, gain: F64, n_places: int,
+           slide: bool = False) -> tuple[I64, I64]:
     """The best-voted places of each centre: ``(places [B, n_places], speed index [B, n_places])``,
     sorted map rows (-1 = none), distinct by ``p.excl`` (greedy non-maximum suppression, best
-    first), each with the speed that voted for it most."""
+    first), each with the speed that voted for it most. ``slide``: a window cut by its run's end
+    votes with the frames of the window slid along the run (:func:`~memlog.matching.paths.window_rows`)."""
     b = len(centres)
     m = p.rc.shape[0]
     nv = len(p.speeds)
     places = np.full((b, n_places), -1, dtype=np.int64)
     speeds = np.zeros((b, n_places), dtype=np.int64)
-    t = centres[:, None] + offs[None, :]
-    valid = (t >= p.run_lo[centres][:, None]) & (t < p.run_hi[centres][:, None])
+    t, valid = window_rows(centres, offs, p.run_lo, p.run_hi, slide)
     bi, oi = np.nonzero(valid)
     tv = t[bi, oi]
     dv = p.qc[tv] - p.qc[centres[bi]]
@@ -74,6 +75,40 @@ def _votes(p: _Problem, centres: I64, offs: I64, cand: I64, gain: F64, n_places:
     return places, speeds
 
 
+
+
+def _with_end_votes(p: _Problem, centres: I64, offs: I64, cand: I64, gain: F64, places: I64, vbest: I64
+                    ) -> tuple[I64, I64]:
+    """``places`` / ``vbest`` with, for each centre whose window its run's start or end cuts
+    (offline matching only), the places its window slid along the run votes for appended (those
+    not within ``p.excl`` of one it has; -1 padded). At a drive's end the window has frames on one
+    side only, and where their single-frame candidates rarely hold the right places the cut
+    window's votes miss them (the drive HMM then has no place to continue the path into and
+    relocalises for the last frames); the slid window has as many frames as any other, so more
+    chances to propose them. Each place is still scored along the cut window: only the proposals
+    grow."""
+    if p.cfg.causal or not len(centres):
+        return places, vbest
+    t0, _ = window_rows(centres, offs, p.run_lo, p.run_hi, False)
+    t1, _ = window_rows(centres, offs, p.run_lo, p.run_hi, True)
+    cut = np.flatnonzero((t0 != t1).any(axis=1))
+    if not len(cut):
+        return places, vbest
+    n_places = places.shape[1]
+    more, more_v = _votes(p, centres[cut], offs, cand, gain, n_places, slide=True)
+    extra = np.full(places.shape, -1, dtype=np.int64)
+    extra_v = np.zeros(places.shape, dtype=np.int64)
+    for j, c in enumerate(cut):
+        have = [float(p.rc[r]) for r in places[c] if r >= 0]
+        n = 0
+        for r, v in zip(more[j], more_v[j]):
+            if r < 0:
+                break
+            if all(abs(float(p.rc[r]) - x) > p.excl for x in have):
+                extra[c, n], extra_v[c, n] = r, v
+                have.append(float(p.rc[r]))
+                n += 1
+    return np.concatenate([places, extra], axis=1), np.concatenate([vbest, extra_v], axis=1)
 
 
 def _place(p: _Problem, i: int, sc: F64, xc: F64, sp: F64, w: int, k: int, indices: I64, scores: F64,
