@@ -270,7 +270,15 @@ def _match_windows(p: _Problem, use: BoolArray, ci: I64, z: F64, m: _MapOrder, k
         centres = centres_all[a : a + block]
         places, vbest = _with_end_votes(p, centres, offs, cand, gain, *_votes(p, centres, offs, cand, gain, n_places))
         if cfg.experimental.path == "constant":
-            sc, xc, sp = _score_constant(p, centres, offs, places, vbest)
+            # the centres with places proposed by their slid windows apart (the others' padding unscored)
+            more = (places[:, n_places:] >= 0).any(axis=1)
+            sc = np.full(places.shape, -np.inf)
+            xc = np.zeros(places.shape)
+            sp = np.full(places.shape, np.nan)
+            for rows, width in ((~more, n_places), (more, places.shape[1])):
+                if rows.any():
+                    sc[rows, :width], xc[rows, :width], sp[rows, :width] = _score_constant(
+                        p, centres[rows], offs, places[rows, :width], vbest[rows, :width])
         else:
             sc = np.full(places.shape, -np.inf)
             xc = np.zeros(places.shape)
