@@ -89,10 +89,11 @@ def distance_uniform_mask(positions: Any, k: int) -> NDArray[np.bool_] | None:
     """Frames evenly spaced along the travelled distance (``positions`` [N, 2|3] metres, NaN rows
     unknown: they carry the last known distance): the distance is cut as a map of K frames is cut
     by distance (:func:`~memlog.selection.coordinates.count_cut`: equal parts of which K hold a
-    frame, so a fast stretch whose frames are further apart than a part does not shrink the map), and each part that holds a frame keeps the one nearest its middle (ties, and a stop's
-    frames at one distance: the earlier). K frames, fewer only where the drive has fewer distinct
-    places; where one more part gains several, the parts' frames are thinned evenly to K. None when
-    there is no travelled distance."""
+    frame, so a fast stretch whose frames are further apart than a part does not shrink the map),
+    and each part that holds a frame keeps the one nearest its middle (ties, and a stop's frames
+    at one distance: the earlier). K frames, fewer only where the drive has fewer distinct places;
+    where one more part gains several, the parts' frames are thinned evenly to K. None when there
+    is no travelled distance."""
     pos = np.asarray(positions, dtype=np.float64)
     n, k = _check(len(pos), k)
     rows = np.flatnonzero(np.all(np.isfinite(pos), axis=1))
