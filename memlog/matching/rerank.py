@@ -13,7 +13,7 @@ from memlog.descriptors.search import Database
 from memlog.descriptors.table import DescriptorTable
 from memlog.matching.config import F32, F64, I64, SequenceConfig, SequenceMatch
 from memlog.matching.coordinates import _nearest
-from memlog.matching.paths import _run_bounds
+from memlog.matching.paths import _run_bounds, window_rows
 from memlog.matching.sequences import _median_step, _ratio
 
 __all__ = ["rerank_by_patches", "PairScores", "RERANK_PLACES", "RERANK_BLOCK"]
@@ -99,9 +99,8 @@ def rerank_by_patches(res: SequenceMatch, q_desc: F32, r_desc: F32, q_patches: n
     patch = np.full((n_q, n_c), np.nan)
     for a in range(0, n_q, RERANK_BLOCK):
         rows = np.arange(a, min(n_q, a + RERANK_BLOCK))
-        t = rows[:, None] + offs[None, :]
-        seq = res.sequence[rows][:, None]
-        valid = ((t >= lo[rows][:, None]) & (t < hi[rows][:, None]) & seq) | (offs[None, :] == 0)
+        t, inside = window_rows(rows, offs, lo, hi, False)
+        valid = (inside & res.sequence[rows][:, None]) | (offs[None, :] == 0)
         t = np.where(valid, t, rows[:, None])
         c = cand[rows]
         v = np.where(res.sequence[rows], res.speed[rows], 0.0)

@@ -269,20 +269,17 @@ def _match_windows(p: _Problem, use: BoolArray, ci: I64, z: F64, m: _MapOrder, k
     for a in range(0, len(centres_all), block):
         centres = centres_all[a : a + block]
         places, vbest = _with_end_votes(p, centres, offs, cand, gain, *_votes(p, centres, offs, cand, gain, n_places))
+        sc = np.full(places.shape, -np.inf)
+        xc = np.zeros(places.shape)
+        sp = np.full(places.shape, np.nan)
         if cfg.experimental.path == "constant":
             # the centres with places proposed by their slid windows apart (the others' padding unscored)
             more = (places[:, n_places:] >= 0).any(axis=1)
-            sc = np.full(places.shape, -np.inf)
-            xc = np.zeros(places.shape)
-            sp = np.full(places.shape, np.nan)
             for rows, width in ((~more, n_places), (more, places.shape[1])):
                 if rows.any():
                     sc[rows, :width], xc[rows, :width], sp[rows, :width] = _score_constant(
                         p, centres[rows], offs, places[rows, :width], vbest[rows, :width])
         else:
-            sc = np.full(places.shape, -np.inf)
-            xc = np.zeros(places.shape)
-            sp = np.full(places.shape, np.nan)
             for j, i in enumerate(centres):
                 ok = places[j] >= 0
                 if ok.any():
