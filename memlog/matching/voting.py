@@ -62,17 +62,26 @@ def _votes(p: _Problem, centres: I64, offs: I64, cand: I64, gain: F64, n_places:
     first = np.searchsorted(cb, np.arange(b))
     last = np.searchsorted(cb, np.arange(b), side="right")
     for j in range(b):
-        top = range(first[j], min(last[j], first[j] + TOP_VOTES))
-        n = 0
-        for e in top:
-            x0 = p.rc[row[e]]
-            if all(abs(x0 - p.rc[places[j, s]]) > p.excl for s in range(n)):
-                places[j, n] = row[e]
-                speeds[j, n] = best_v[e]
-                n += 1
-                if n == n_places:
-                    break
+        top = slice(first[j], min(last[j], first[j] + TOP_VOTES))
+        for n, (r, v) in enumerate(_distinct(p, row[top], best_v[top], [], n_places)):
+            places[j, n], speeds[j, n] = r, v
     return places, speeds
+
+
+def _distinct(p: _Problem, rows: I64, speeds: I64, have: list[float], limit: int) -> list[tuple[int, int]]:
+    """``rows`` (sorted map rows, with their speed indices), in order, each taken when it lies further
+    than ``p.excl`` from every row taken before it and from the coordinates ``have``: greedy
+    non-maximum suppression, at most ``limit`` rows."""
+    taken: list[tuple[int, int]] = []
+    xs = list(have)
+    for r, v in zip(rows, speeds):
+        x = float(p.rc[r])
+        if all(abs(x - y) > p.excl for y in xs):
+            taken.append((int(r), int(v)))
+            xs.append(x)
+            if len(taken) == limit:
+                break
+    return taken
 
 
 
@@ -100,14 +109,9 @@ def _with_end_votes(p: _Problem, centres: I64, offs: I64, cand: I64, gain: F64, 
     extra_v = np.zeros(places.shape, dtype=np.int64)
     for j, c in enumerate(cut):
         have = [float(p.rc[r]) for r in places[c] if r >= 0]
-        n = 0
-        for r, v in zip(more[j], more_v[j]):
-            if r < 0:
-                break
-            if all(abs(float(p.rc[r]) - x) > p.excl for x in have):
-                extra[c, n], extra_v[c, n] = r, v
-                have.append(float(p.rc[r]))
-                n += 1
+        found = more[j] >= 0
+        for n, (r, v) in enumerate(_distinct(p, more[j][found], more_v[j][found], have, n_places)):
+            extra[c, n], extra_v[c, n] = r, v
     return np.concatenate([places, extra], axis=1), np.concatenate([vbest, extra_v], axis=1)
 
 
