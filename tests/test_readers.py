@@ -48,9 +48,21 @@ def test_topic_table(name: str, fmt: str, topics: dict[str, int]) -> None:
         assert info.start_ns is not None and info.start_ns >= T0
         # the counts the index reports equal a full scan
         scanned: dict[str, int] = {}
+        times: dict[str, list[int]] = {}
         for m in log.messages(log_time_order=False):
             scanned[m.channel.topic] = scanned.get(m.channel.topic, 0) + 1
+            times.setdefault(m.channel.topic, []).append(m.log_time)
         assert scanned == topics
+        # a topic's time range, where the index gives one, holds every message of the topic (an MCAP
+        # chunk index gives its chunks' ranges, so it may be wider; a ROS 1 bag's is exact)
+        for t in info.topics:
+            if fmt == "ros2bag":  # (a ROS 2 bag's metadata gives the whole bag's range only)
+                continue
+            assert t.start_ns is not None and t.end_ns is not None and info.end_ns is not None
+            assert info.start_ns <= t.start_ns <= min(times[t.topic]), t.topic
+            assert max(times[t.topic]) <= t.end_ns <= info.end_ns, t.topic
+            if fmt == "ros1bag":
+                assert (t.start_ns, t.end_ns) == (min(times[t.topic]), max(times[t.topic])), t.topic
 
 
 @pytest.mark.parametrize(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import os
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Container, Iterable, Iterator, Mapping
+from collections.abc import Callable, Container, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from types import TracebackType
 from typing import Any
@@ -278,6 +278,16 @@ class LogReader(ABC):
 
     def _fill_time_range(self, info: LogInfo) -> None:
         """Hook for formats whose index knows per-topic time ranges."""
+
+    def _widen_topic_ranges(self, info: LogInfo, ranges: Mapping[int, Sequence[int]]) -> None:
+        """Widen each topic's time range in ``info`` by ``ranges`` (channel id -> ``[start, end]`` ns)
+        of its channels."""
+        for t in info.topics:
+            for c in self.channels():
+                if c.topic == t.topic and c.id in ranges:
+                    lo, hi = ranges[c.id]
+                    t.start_ns = lo if t.start_ns is None else min(t.start_ns, lo)
+                    t.end_ns = hi if t.end_ns is None else max(t.end_ns, hi)
 
     def check_camera_topics(self, topics: Iterable[str] | None) -> list[str]:
         """The camera topics to stream: ``topics`` (checked: each must be a camera topic of

@@ -357,12 +357,7 @@ class McapLog(LogReader):
                     r[1] = max(r[1], ci.message_end_time)
         elif not lrn.indexed:
             ranges = lrn.ranges
-        for t in info.topics:
-            for c in lrn.channels.values():
-                if c.topic == t.topic and c.id in ranges:
-                    lo, hi = ranges[c.id]
-                    t.start_ns = lo if t.start_ns is None else min(t.start_ns, lo)
-                    t.end_ns = hi if t.end_ns is None else max(t.end_ns, hi)
+        self._widen_topic_ranges(info, ranges)
 
     # -- messages ---------------------------------------------------------------
     def _iter_messages(

@@ -538,12 +538,7 @@ class Ros1BagLog(LogReader):
         lrn = self._l
         if lrn.time_range is not None:
             info.start_ns, info.end_ns = lrn.time_range
-        for t in info.topics:
-            for c in lrn.chans.values():
-                if c.topic == t.topic and c.id in lrn.ranges:
-                    lo, hi = lrn.ranges[c.id]
-                    t.start_ns = lo if t.start_ns is None else min(t.start_ns, lo)
-                    t.end_ns = hi if t.end_ns is None else max(t.end_ns, hi)
+        self._widen_topic_ranges(info, lrn.ranges)
 
     def _iter_messages(
         self, topics: set[str] | None, start_ns: int | None, end_ns: int | None, log_time_order: bool
