@@ -312,16 +312,23 @@ def _check_candidates(flags: dict[str, Any], select: SelectionConfig) -> None:
         raise ConfigError(f"--candidates applies to segment selection only, not --select {select.mode}")
 
 
+def _selecting_config(args: argparse.Namespace, cls: Any, section: str) -> tuple[Any, dict[str, Any]]:
+    """A step that scores and selects (``map``, ``evaluate``): its config from the file's ``[section]``
+    table over the scoring and selection settings, and the flags given (checked against the selection)."""
+    score = score_config(args)
+    select = selection_config(args, score)
+    where = f"{args.config}: [{section}]" if getattr(args, "config", None) else f"[{section}]"
+    cfg = build(cls, file_section(args, section), where, cls(score=score, select=select))
+    flags = setting_values(args, cls)
+    _check_candidates(flags, select)
+    return cfg, flags
+
+
 def map_config(args: argparse.Namespace) -> Any:
     """The map step's config: the file's [map] table, then flags (scoring and selection included)."""
     from memlog.steps.map import MapConfig
 
-    score = score_config(args)
-    select = selection_config(args, score)
-    where = f"{args.config}: [map]" if getattr(args, "config", None) else "[map]"
-    cfg = build(MapConfig, file_section(args, "map"), where, MapConfig(score=score, select=select))
-    flags = setting_values(args, MapConfig)
-    _check_candidates(flags, select)
+    cfg, flags = _selecting_config(args, MapConfig, "map")
     return with_flags(MapConfig, flags, cfg)
 
 
@@ -564,12 +571,7 @@ def evaluate_config(args: argparse.Namespace) -> Any:
     """The evaluate step's config: the file's [evaluate] table, then flags."""
     from memlog.steps.evaluate import EvaluateConfig
 
-    score = score_config(args)
-    select = selection_config(args, score)
-    where = f"{args.config}: [evaluate]" if getattr(args, "config", None) else "[evaluate]"
-    cfg = build(EvaluateConfig, file_section(args, "evaluate"), where, EvaluateConfig(score=score, select=select))
-    flags = setting_values(args, EvaluateConfig)
-    _check_candidates(flags, select)
+    cfg, flags = _selecting_config(args, EvaluateConfig, "evaluate")
     if _sequence_given(args):
         flags["sequence"] = sequence_config(args)
     if args.start is not None or args.end is not None or args.stride != 1:
