@@ -282,9 +282,10 @@ class LogReader(ABC):
     def _widen_topic_ranges(self, info: LogInfo, ranges: Mapping[int, Sequence[int]]) -> None:
         """Widen each topic's time range in ``info`` by ``ranges`` (channel id -> ``[start, end]`` ns)
         of its channels."""
+        channels = [c for c in self.channels() if c.id in ranges]
         for t in info.topics:
-            for c in self.channels():
-                if c.topic == t.topic and c.id in ranges:
+            for c in channels:
+                if c.topic == t.topic:
                     lo, hi = ranges[c.id]
                     t.start_ns = lo if t.start_ns is None else min(t.start_ns, lo)
                     t.end_ns = hi if t.end_ns is None else max(t.end_ns, hi)
