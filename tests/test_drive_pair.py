@@ -114,6 +114,46 @@ def test_every_kth_baseline_is_a_written_map(drive_pair: dict[str, Any], tmp_pat
     assert not list((drive_pair["eval"] / "maps").glob("every-kth-*"))
 
 
+def _speed_error_near_stops(map_parquet: Path, matches: Path, truth: dict[str, Any], length: int = 10,
+                            min_stop: int = 3) -> tuple[float, int]:
+    """Median |log2(speed / true speed)| of the speeds ``localize`` reports for the query's moving
+    frames within ``length`` moving frames of a stop of at least ``min_stop`` standing frames, and
+    their count. The true speed is the truth's: map coordinate (the map's moving index at the
+    frame's true place, interpolated where the map skips it) over the query's (its place changes),
+    between the moving frames before and after."""
+    rp, qp = np.asarray(truth["reference_places"]), np.asarray(truth["query_places"])
+    m = pq.read_table(map_parquet, columns=["frame_index", "moving_index"]).to_pydict()
+    have, first = np.unique(rp[np.asarray(m["frame_index"])], return_index=True)
+    g = np.interp(qp, have, np.asarray(m["moving_index"], dtype=np.float64)[first])
+    t = pq.read_table(matches).to_pydict()
+    speed = {q: s for q, k, s in zip(t["query_id"], t["rank"], t["sequence_speed"]) if k == 0}
+    moving = np.r_[True, qp[1:] != qp[:-1]]
+    qc = np.cumsum(moving) - 1
+    standing_for = np.zeros(len(qp), dtype=np.int64)  # standing frames so far in the current stop
+    for i in range(1, len(qp)):
+        standing_for[i] = 0 if moving[i] else standing_for[i - 1] + 1
+    stops = qc[standing_for == min_stop]
+    mov = np.flatnonzero(moving)
+    err = []
+    for p, i, n in zip(mov[:-2], mov[1:-1], mov[2:]):
+        true = (g[n] - g[p]) / (qc[n] - qc[p])
+        if np.any(np.abs(stops - qc[i]) <= length) and true > 0 and np.isfinite(speed.get(int(i), np.nan)):
+            err.append(abs(np.log2(max(speed[int(i)], 1e-3) / true)))
+    return float(np.median(err)), len(err)
+
+
+def test_the_speeds_around_a_stop_are_the_drives_own(drive_pair_maps: dict[str, tuple[Path, Path]]) -> None:
+    """The query stands 25 frames at place 45 (at half the map's pace before, twice after) and 10 at
+    place 80: a window across a stop votes a blend of the speeds on its two sides. The re-rank scores
+    each frame along the speed its window votes cut at the stops, and ``localize`` reports it: near
+    the stops it is within 2^0.15 of the truth's speed for most frames (measured 2^0.10; the whole
+    windows' blend: 2^0.21)."""
+    truth = json.loads(shared("stromovka_drive_truth.json").read_text())
+    parquet, matches = drive_pair_maps["full"]
+    err, n = _speed_error_near_stops(parquet, matches, truth)
+    assert n >= 30 and err <= 0.15, (err, n)
+
+
 @pytest.fixture(scope="module")
 def odometry_half_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``memlog map --keep-fraction 0.5`` of the map drive with the odometry a robot records beside

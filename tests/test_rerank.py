@@ -185,3 +185,61 @@ def test_dinov2_patches_come_from_the_same_pass_as_block_7_tokens_pooled() -> No
     np.testing.assert_allclose(wpatches, patches, atol=1e-6)
     thumb = make_describer("thumbnail")
     assert not thumb.gives_patches and thumb.describe_patches(imgs)[1] is None
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_stop_runs_cut_after_each_long_stop(seed: int) -> None:
+    """Against a loop over the rows: a new run at each run's start and at the first moving row
+    after at least ``min_stop`` standing rows of the same run."""
+    from memlog.matching.coordinates import stop_runs
+
+    rng = np.random.default_rng(seed)
+    labels = np.repeat(np.arange(4), rng.integers(1, 30, size=4))
+    standing = rng.random(len(labels)) < 0.6
+    standing[np.r_[True, labels[1:] != labels[:-1]]] = False  # a run's first row never stands
+    for min_stop in (1, 3):
+        want, run, streak = [], -1, 0
+        for i in range(len(labels)):
+            if i == 0 or labels[i] != labels[i - 1] or (not standing[i] and streak >= min_stop):
+                run += 1
+            streak = streak + 1 if standing[i] else 0
+            want.append(run)
+        got = stop_runs(labels, standing, min_stop)
+        cuts = len(set(want)) > len(set(labels.tolist()))
+        assert (got is None) == (not cuts)
+        if got is not None:
+            assert got.tolist() == want
+
+
+def test_the_rerank_takes_its_speeds_from_windows_cut_at_the_query_stops() -> None:
+    """Each sequence row is re-ranked along the speed the descriptor stage gives it with the query's
+    runs cut after every stop of SPEED_STOP standing frames (computed here by match_sequences on
+    runs cut by hand); without such a stop, along its own window's speed."""
+    from memlog.matching import match_sequences
+    from memlog.matching.matcher import SPEED_STOP
+
+    ref, query, _pca = _tables(n_ref=90, n_q=60, seed=2)
+    mi = np.r_[np.arange(20), np.full(SPEED_STOP, 19), np.arange(20, 60 - SPEED_STOP)]  # one stop after row 19
+    query = DescriptorTable(query.topic, query.frame_index, query.log_time_ns, query.stamp_ns, query.descriptors,
+                            query.meta, moving_index=mi, patches=query.patches)
+    cfg = SequenceConfig(hmm=False)
+    res = match_tables(query, ref, cfg, k=5)
+    standing = np.r_[False, mi[1:] == mi[:-1]]
+    cut = (np.arange(60) >= 20 + SPEED_STOP).astype(np.int64)
+    whole = match_sequences(query.descriptors, mi.astype(float), ref.descriptors, ref.moving_index.astype(float), cfg,
+                            k=5, standing=standing)
+    own = match_sequences(query.descriptors, mi.astype(float), ref.descriptors, ref.moving_index.astype(float), cfg,
+                          k=1, runs=cut, standing=standing)
+    both = whole.sequence & own.sequence
+    assert both.sum() > 40 and "cut at the query's stops" in res.info["rerank"]["speeds"]
+    assert (own.speed[both] != whole.speed[both]).any()  # the cut windows vote other speeds near the stop
+    np.testing.assert_allclose(res.speed[both], own.speed[both])
+    # a stop one frame shorter cuts nothing: the windows' own speeds
+    short = np.r_[np.arange(20), np.full(SPEED_STOP - 1, 19), np.arange(20, 61 - SPEED_STOP)]
+    query = DescriptorTable(query.topic, query.frame_index, query.log_time_ns, query.stamp_ns, query.descriptors,
+                            query.meta, moving_index=short, patches=query.patches)
+    res = match_tables(query, ref, cfg, k=5)
+    whole = match_sequences(query.descriptors, short.astype(float), ref.descriptors, ref.moving_index.astype(float),
+                            cfg, k=5, standing=np.r_[False, short[1:] == short[:-1]])
+    assert res.info["rerank"]["speeds"] == "the windows' own"
+    np.testing.assert_allclose(res.speed[whole.sequence], whole.speed[whole.sequence])

@@ -12,7 +12,7 @@ from memlog.errors import DescriptorError
 from memlog.io.positions import geo_origin, geo_to_local
 from memlog.matching.config import BoolArray, F64, GAP_FACTOR, I64, SequenceConfig
 
-__all__ = ["drive_coordinates", "drive_runs", "resolve_coordinate", "has_positions", "reference_unit", "standing_rows", "uses_stops", "drive_pace", "frame_interval"]
+__all__ = ["drive_coordinates", "drive_runs", "resolve_coordinate", "has_positions", "reference_unit", "standing_rows", "stop_runs", "uses_stops", "drive_pace", "frame_interval"]
 
 
 
@@ -90,6 +90,26 @@ def standing_rows(table: DescriptorTable, runs: npt.ArrayLike | None = None) -> 
     for rows in _topic_groups(table):
         a, b = rows[:-1], rows[1:]
         out[b] = (mi[b] == mi[a]) & (lab[b] == lab[a])
+    return out
+
+
+def stop_runs(labels: npt.ArrayLike, standing: npt.ArrayLike, min_stop: int) -> I64 | None:
+    """Run labels (drive order, as :func:`drive_runs` gives) with each run also cut at its first
+    moving row after a stop of at least ``min_stop`` standing rows (``standing``: as
+    :func:`standing_rows` gives); None where no run has such a stop. A drive's speed before a stop
+    says nothing of its speed after it: windows of these runs do not cross a stop."""
+    lab = np.asarray(labels, dtype=np.int64)
+    s = np.asarray(standing, dtype=bool)
+    n = len(lab)
+    if n < 2:
+        return None
+    idx = np.arange(n)
+    streak = idx - np.maximum.accumulate(np.where(s, -1, idx))  # standing rows ending at each row (0: moving)
+    new_run = lab[1:] != lab[:-1]
+    cut = ~s[1:] & (streak[:-1] >= min_stop) & ~new_run
+    if not cut.any():
+        return None
+    out: I64 = np.cumsum(np.r_[True, new_run | cut]).astype(np.int64) - 1
     return out
 
 

@@ -4,6 +4,7 @@ the drive HMM."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -11,7 +12,7 @@ import numpy.typing as npt
 
 from memlog.descriptors.table import DescriptorTable
 from memlog.matching.config import F32, F64, I64, SequenceConfig, SequenceMatch
-from memlog.matching.coordinates import _topic_groups, drive_coordinates, drive_pace, drive_runs, reference_unit, resolve_coordinate, standing_rows, uses_stops
+from memlog.matching.coordinates import _topic_groups, drive_coordinates, drive_pace, drive_runs, reference_unit, resolve_coordinate, standing_rows, stop_runs, uses_stops
 from memlog.matching.paths import _run_bounds
 from memlog.matching.rerank import RERANK_PLACES, PairScores, _patch_plan, _ranked_by, rerank_by_patches
 from memlog.matching.sequences import _median_step, match_sequences
@@ -23,6 +24,7 @@ if TYPE_CHECKING:
 
 __all__ = ["match_tables"]
 
+SPEED_STOP = 3  # standing frames that make a stop the re-rank's speeds are voted up to (docs/defaults.md)
 
 
 def match_tables(
@@ -42,9 +44,12 @@ def match_tables(
     (:func:`drive_runs`) and put in drive order per topic; the map is cut into runs the same way
     (its topics, recording gaps and frames out of order), each run's coordinates far from the
     others' so no path crosses from one to the next; the reference frame spacing comes from the
-    map's frame indices (so a sparse map's gaps are known). ``ref_mask``: the map is these rows of
-    ``reference`` (returned rows are rows of the whole table). Results are in the query table's
-    row order."""
+    map's frame indices (so a sparse map's gaps are known). The patch re-rank scores each frame's
+    places along the speed that windows not crossing a stop of the query vote (a stop of
+    :data:`SPEED_STOP` standing frames or more; the places themselves come from the whole windows):
+    a window across a stop votes a blend of the speeds before and after it. ``ref_mask``: the map is
+    these rows of ``reference`` (returned rows are rows of the whole table). Results are in the
+    query table's row order."""
     cfg = config or SequenceConfig()
     coordinate, note = resolve_coordinate(cfg.coordinate, query, reference)
     stops = uses_stops(cfg, coordinate)
@@ -67,6 +72,8 @@ def match_tables(
     # what every run shares (the whitening ensemble matches the drive once per member)
     q_desc, q_c, q_runs = query.descriptors[perm], qc[perm], labels[perm]
     q_standing = None if standing is None else standing[perm]
+    # the runs the re-rank's speeds are voted in: cut after each stop (None: no stop that long)
+    free_runs = None if q_standing is None else stop_runs(q_runs, q_standing, SPEED_STOP)
     pairs, spacing = None, 0.0
     if why_not is None:  # the re-rank's pair scores (each computed once) and the HMM's map spacing
         assert query.patches is not None and reference.patches is not None and reference.patch_pca is not None
@@ -75,15 +82,26 @@ def match_tables(
 
     def run(qd: F32, rd: F32, hmm: bool = True) -> SequenceMatch:
         """The descriptor stage, the patch re-rank and (``hmm``) the drive HMM on descriptors ``qd``, ``rd``."""
-        res = match_sequences(qd, q_c, index.db if index is not None else rd, rc, cfg, k=places, runs=q_runs,
-                              ref_unit=unit, coordinate=coordinate, index=index, nprobe=nprobe, rerank=rerank,
-                              standing=q_standing, ref_mask=None if index is not None else ref_mask, pace=pace)
+        def stage(runs: I64, n: int) -> SequenceMatch:
+            return match_sequences(qd, q_c, index.db if index is not None else rd, rc, cfg, k=n, runs=runs,
+                                   ref_unit=unit, coordinate=coordinate, index=index, nprobe=nprobe, rerank=rerank,
+                                   standing=q_standing, ref_mask=None if index is not None else ref_mask, pace=pace)
+
+        res = stage(q_runs, places)
         if pairs is None:
             return res
         assert reference.patch_pca is not None
+        n_free = 0
+        if free_runs is not None:  # each row's speed from its window cut at the stops
+            free = stage(free_runs, 1)
+            use = res.sequence & free.sequence
+            res = replace(res, speed=np.where(use, free.speed, res.speed))
+            n_free = int(use.sum())
         res = rerank_by_patches(res, qd, rd, pairs.q_patches, pairs.r_patches, q_c, rc, map_rows, q_runs, cfg,
                                 places, unit, pairs=pairs)
-        res.info["rerank"] = {"by": "patches", "places": places, "patch_pca": reference.patch_pca.sha256}
+        res.info["rerank"] = {"by": "patches", "places": places, "patch_pca": reference.patch_pca.sha256,
+                              "speeds": (f"voted by windows cut at the query's stops ({SPEED_STOP}+ standing frames) "
+                                         f"for {n_free} rows") if free_runs is not None else "the windows' own"}
         if not (cfg.hmm and cfg.enabled):
             res.info["hmm"] = {"off": "turned off (--no-hmm)" if cfg.enabled else "single frames"}
         elif hmm:
