@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
 __all__ = ["match_tables"]
 
-SPEED_STOP = 3  # standing frames that make a stop the re-rank's speeds are voted up to (docs/defaults.md)
+SPEED_STOP = 3  # a stop of this many standing frames ends the windows the re-rank's speeds are voted in
 
 
 def match_tables(
@@ -91,17 +91,11 @@ def match_tables(
         if pairs is None:
             return res
         assert reference.patch_pca is not None
-        n_free = 0
-        if free_runs is not None:  # each row's speed from its window cut at the stops
-            free = stage(free_runs, 1)
-            use = res.sequence & free.sequence
-            res = replace(res, speed=np.where(use, free.speed, res.speed))
-            n_free = int(use.sum())
+        res, speeds = _speeds_between_stops(res, None if free_runs is None else stage(free_runs, 1))
         res = rerank_by_patches(res, qd, rd, pairs.q_patches, pairs.r_patches, q_c, rc, map_rows, q_runs, cfg,
                                 places, unit, pairs=pairs)
         res.info["rerank"] = {"by": "patches", "places": places, "patch_pca": reference.patch_pca.sha256,
-                              "speeds": (f"voted by windows cut at the query's stops ({SPEED_STOP}+ standing frames) "
-                                         f"for {n_free} rows") if free_runs is not None else "the windows' own"}
+                              "speeds": speeds}
         if not (cfg.hmm and cfg.enabled):
             res.info["hmm"] = {"off": "turned off (--no-hmm)" if cfg.enabled else "single frames"}
         elif hmm:
@@ -133,6 +127,17 @@ def match_tables(
     return res
 
 
+
+
+def _speeds_between_stops(res: SequenceMatch, free: SequenceMatch | None) -> tuple[SequenceMatch, str]:
+    """``res`` with each sequence row's speed the one ``free`` gives it (the descriptor stage on the
+    query's runs cut after its stops; None: no stop that long) where that row is a sequence there
+    too, and what the re-rank's speeds are."""
+    if free is None:
+        return res, "the windows' own"
+    use = res.sequence & free.sequence
+    return (replace(res, speed=np.where(use, free.speed, res.speed)),
+            f"voted by windows cut at the query's stops ({SPEED_STOP}+ standing frames) for {int(use.sum())} rows")
 
 
 def _along_drive(res: SequenceMatch, q_desc: F32, r_desc: F32, qc: F64, rc: F64, labels: I64, spacing: float,
