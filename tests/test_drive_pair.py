@@ -119,7 +119,7 @@ def _speed_error_near_stops(map_parquet: Path, matches: Path, truth: dict[str, A
     """Median |log2(speed / true speed)| of the speeds ``localize`` reports for the query's moving
     frames within ``length`` moving frames of a stop of at least ``min_stop`` standing frames, and
     their count. The true speed is the truth's: map coordinate (the map's moving index at the
-    frame's true place, interpolated where the map skips it) over the query's (its place changes),
+    frame's true place, interpolated where the map has none) over the query's (its place changes),
     between the moving frames before and after."""
     rp, qp = np.asarray(truth["reference_places"]), np.asarray(truth["query_places"])
     m = pq.read_table(map_parquet, columns=["frame_index", "moving_index"]).to_pydict()
