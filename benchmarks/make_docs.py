@@ -312,6 +312,11 @@ BENCHES: list[Bench] = [
           "the GPU path: `score`, `map` and `localize` on CUDA against the CPU (frames/s, the provider each model "
           "runs on, agreement); without a GPU, the CPU fallback",
           2, ("shared",)),
+    Bench("mcap_conformance",
+          ("python", "benchmarks/mcap_conformance.py"),
+          "the official MCAP conformance corpus (416 valid files) through the reader, `inspect` and `convert`, per "
+          "feature combination",
+          1, ("shared",)),
     Bench("damage_sweep",
           ("python", "benchmarks/damage_sweep.py"),
           "hundreds of damaged or wrong copies of the fixtures and shared logs through the readers, `inspect` and "
@@ -349,6 +354,7 @@ TITLES = {
     "video_decode": "video camera topics: decoding H.264 against JPEG",
     "read_count": "reads of a damaged or unfinished log per job",
     "gpu_check": "the GPU path and its CPU fallback",
+    "mcap_conformance": "the MCAP conformance corpus",
     "damage_sweep": "the damage sweep",
 }
 

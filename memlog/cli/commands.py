@@ -69,10 +69,19 @@ def add_inspect(sub: Any) -> None:
 
 
 _CHECKSUMS = {
-    "all": "every chunk CRC verified",
+    "all": "every record of the data is covered by a checksum, and each was checked",
     "some": "some chunks have no CRC: damage in those cannot be detected",
     "none": "no checksums: damage cannot be detected",
     "unknown": "not checked",
+}
+# each MCAP checksum (LogReader.checksum_checks) and how it fared, in words
+_CHECKS = {
+    "chunks": ("chunk CRCs", {"held": "held on every chunk", "some": "some chunks have none", "absent": "none written",
+                              "failed": "FAILED on a chunk (skipped)", "none": "no chunks", "unread": "not read"}),
+    "data_section": ("data-section CRC", {"held": "held", "failed": "FAILED (records kept)", "absent": "none written",
+                                          "unchecked": "not checked (the chunk CRCs cover the messages)"}),
+    "summary": ("summary CRC", {"held": "held", "failed": "FAILED (the data was read instead)", "absent": "none written",
+                                "none": "no summary"}),
 }
 
 
@@ -89,6 +98,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
             d["duration_s"] = inf.duration_s
             d["camera_topics"] = inf.camera_topics
             d["checksums"] = log.checksums()
+            d["checksum_checks"] = log.checksum_checks()
             d["warnings"] = list(log.report.warnings)
             print(json.dumps(d, indent=2))
             return report_damage(log.report)
@@ -101,6 +111,9 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         print(f"duration:  {inf.duration_s:.3f} s")
         print(f"messages:  {sum(t.count for t in inf.topics)}")
         print(f"integrity: {checks}")
+        for kind, status in log.checksum_checks().items():
+            name, words = _CHECKS[kind]
+            print(f"  {name + ':':<18}{words.get(status, status)}")
         print()
         rows = [[t.topic, t.msgtype, t.encoding, str(t.count), "camera" if t.is_camera else ""]
                 for t in sorted(inf.topics, key=lambda t: t.topic)]

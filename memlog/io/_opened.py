@@ -58,7 +58,7 @@ MAX_ENTRIES = DEFAULT_OPENED_LOGS
 #: Scan records kept on disk (the least recently written dropped first).
 MAX_SCANS = 256
 #: Bumped when what a scan record holds changes (with memlog's version, it must match to be used).
-_SCAN_FORMAT = 2
+_SCAN_FORMAT = 3
 _log = logging.getLogger(__name__)
 
 

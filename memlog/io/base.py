@@ -150,6 +150,15 @@ class LogReader(ABC):
         cannot be detected) or ``"unknown"`` (nothing read yet)."""
         return "none"
 
+    def checksum_checks(self) -> dict[str, str]:
+        """Each checksum the format has and how it fared, for formats that have several (MCAP):
+        ``chunks`` ("held": every chunk read had a CRC and it matched, "some", "absent", "failed",
+        "none": no chunks, "unread"), ``data_section`` (the CRC over an unchunked file's records:
+        "held", "failed", "absent", "unchecked": a chunked file's chunk CRCs cover its messages)
+        and ``summary`` ("held", "failed", "absent", "none": no summary). Empty where the format
+        has at most one kind."""
+        return {}
+
     def close(self) -> None:
         """Release the file."""
 

@@ -11,11 +11,13 @@ __all__ = ["SchemaInfo", "ChannelInfo", "RawMessage", "Attachment", "ReadReport"
 @dataclass(frozen=True)
 class SchemaInfo:
     """A message schema as stored in the log (``encoding``: ros1msg, ros2msg, ros2idl,
-    jsonschema, protobuf, or "" for none)."""
+    jsonschema, protobuf, or "" for none). ``id``: the MCAP schema record's id (0 where the log
+    has none, as in a bag); two schemas that differ only in their ids compare equal."""
 
     name: str
     encoding: str
     data: bytes
+    id: int = field(default=0, compare=False)
 
 
 @dataclass(frozen=True)
@@ -71,7 +73,9 @@ class ReadReport:
     read instead; ``skipped_files`` counts storage files of a ROS 2 bag that could not be read
     at all; ``retimed_messages`` counts messages kept although the log's time for them was
     damaged (a ROS 2 ``.db3`` row whose timestamp is not a time): they carry their header stamp,
-    else a neighbouring message's time; ``warnings`` are human-readable lines that name the
+    else a neighbouring message's time; ``data_crc_failed`` when a checksum over records read
+    whole fails (an unchunked MCAP's data-section CRC): they were kept, but which of them is
+    damaged cannot be told; ``warnings`` are human-readable lines that name the
     file, topic and message index.
     """
 
@@ -84,6 +88,7 @@ class ReadReport:
     index_damaged: bool = False
     skipped_files: int = 0
     retimed_messages: int = 0
+    data_crc_failed: bool = False
     warnings: list[str] = field(default_factory=list)
     places: set[tuple[str, Hashable]] = field(default_factory=set, repr=False, compare=False)
 
@@ -108,6 +113,7 @@ class ReadReport:
         damage both found at the same place counts once."""
         self.truncated |= other.truncated
         self.index_damaged |= other.index_damaged
+        self.data_crc_failed |= other.data_crc_failed
         if other.bytes_read is not None:
             self.bytes_read = other.bytes_read if self.bytes_read is None else min(self.bytes_read, other.bytes_read)
         for kind in ("skipped_chunks", "bad_messages", "undecodable_frames", "skipped_files", "retimed_messages"):
@@ -122,7 +128,7 @@ class ReadReport:
     @property
     def ok(self) -> bool:
         return not (self.truncated or self.skipped_chunks or self.bad_messages or self.undecodable_frames
-                    or self.index_damaged or self.skipped_files or self.retimed_messages)
+                    or self.index_damaged or self.skipped_files or self.retimed_messages or self.data_crc_failed)
 
     def damage(self) -> list[str]:
         """What was damaged, one phrase each (empty when :attr:`ok`)."""
@@ -140,6 +146,9 @@ class ReadReport:
         if self.retimed_messages:
             parts.append(f"{self.retimed_messages} message(s) without a valid log time kept at their header stamp "
                          "(else a neighbour's time)")
+        if self.data_crc_failed:
+            parts.append("the data section fails its CRC check (its records were kept; which of them is damaged "
+                         "cannot be told)")
         if self.index_damaged:
             parts.append("its index is damaged or disagrees with the data (the data was read)")
         return parts

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import copy
 import heapq
+import logging
 import os
 import struct
 from collections import OrderedDict
@@ -72,6 +73,8 @@ from memlog.io.types import LogInfo
 
 __all__ = ["McapLog", "CHUNK_CACHE_BYTES"]
 
+_LOG = logging.getLogger("memlog.io")
+
 #: Message bytes of the chunks a reader keeps after reading them (the last ones read), so that a
 #: pass asking for a few frames at a time (the staged detector, one segment after the other) reads
 #: each chunk once. A larger chunk is not kept.
@@ -96,6 +99,10 @@ class _Learned:
     crcs: list[bool] = field(default_factory=list)  # per chunk the scan read: was its CRC checked
     report: ReadReport | None = None  # what opening found (copied into every reader's report)
     places: dict[int, str] = field(default_factory=dict)  # damage_place() of each damage found
+    unresolved: dict[int, int] = field(default_factory=dict)  # channel id -> its schema's id, not read yet
+    summary_crc: str = "absent"  # the footer's summary CRC: "held", "failed" or "absent"
+    data_crc: str = "absent"  # the DataEnd record's CRC of the data section: "held", "failed", "absent", "unchecked"
+    crc_failed: set[int] = field(default_factory=set)  # offsets of the chunks that failed their CRC check
 
     @property
     def scanned(self) -> bool:
@@ -171,25 +178,35 @@ class McapLog(LogReader):
         return b[0], struct.unpack_from("<Q", b, 1)[0]
 
     def _open_summary(self) -> None:
+        """Use the summary where it is whole and agrees with the data. Every summary section is
+        optional (MCAP spec): a file without a summary, or whose summary repeats no channels, or
+        lists channels whose schemas only the data section holds, is valid; only a summary that
+        fails its CRC, does not parse or disagrees with the data is damage."""
         learned_ = self._l
-        summary, summary_start, why = read_summary(self._fh, self._size)
-        if summary is not None and summary.channels:
-            learned_.summary = summary
-            for sid, s in summary.schemas.items():
-                learned_.schemas[sid] = schema_info(s)
-            for c in summary.channels.values():
-                self._add_channel(c)
-        if summary is None or not summary.channels:
-            if (summary is not None and summary.chunk_indexes) or "CRC" in why or "parse" in why or "outside" in why:
-                self.report.index_damaged = True
-            if why.startswith("no footer"):
-                self.report.truncated = True
-            learned_.summary = None
-            self.warn(f"{self.path}: {why or 'the summary lists no channels'}: reading the data sequentially")
+        summary, summary_start, why, learned_.summary_crc = read_summary(self._fh, self._size)
+        if summary is None and learned_.summary_crc != "failed":
+            learned_.summary_crc = "none"
+        if summary is None:
+            if why.startswith("no summary section"):
+                _LOG.info("%s: %s: reading the data sequentially", self.path, why)
+            else:
+                if why.startswith("no footer"):
+                    self.report.truncated = True
+                elif summary_start or "outside" in why:  # a summary is there, but fails its CRC or does not parse
+                    self.report.index_damaged = True
+                self.warn(f"{self.path}: {why}: reading the data sequentially")
             self._scan()
             return
-        if not summary.chunk_indexes:
-            self._scan()  # unchunked file (or no messages): scanned once, channels from the summary
+        learned_.summary = summary
+        for sid, s in summary.schemas.items():
+            learned_.schemas[sid] = schema_info(s)
+        for c in summary.channels.values():
+            self._add_channel(c)
+        if not summary.channels or not summary.chunk_indexes:
+            # channels only in the data, or an unchunked file: the data is read once, as it is
+            _LOG.info("%s: %s: reading the data sequentially", self.path,
+                      "the summary repeats no channels" if summary.channels == {} else "no chunk index")
+            self._scan()
             return
         walked, damage, top = self._walk_chunks(summary_start)
         index = {ci.chunk_start_offset: ci for ci in summary.chunk_indexes}
@@ -198,6 +215,7 @@ class McapLog(LogReader):
             or index[o].message_end_time != r.end)]
         if damage is None and set(walked) == set(index) and not top and not differ:
             learned_.indexed = True
+            self._resolve_schemas()
             return
         self.report.index_damaged = True
         reasons: list[str] = []
@@ -264,9 +282,29 @@ class McapLog(LogReader):
             self._key = None
 
     def _add_channel(self, c: Channel) -> ChannelInfo:
-        info = ChannelInfo(c.id, c.topic, c.message_encoding, self._l.schemas.get(c.schema_id), dict(c.metadata))
-        self._l.channels[c.id] = info
+        """Register a summary channel; one whose schema only the data holds waits for it
+        (:meth:`_resolve_schemas`)."""
+        lrn = self._l
+        if c.schema_id and c.schema_id not in lrn.schemas:
+            lrn.unresolved[c.id] = c.schema_id
+        info = ChannelInfo(c.id, c.topic, c.message_encoding, lrn.schemas.get(c.schema_id), dict(c.metadata))
+        lrn.channels[c.id] = info
         return info
+
+    def _resolve_schemas(self) -> None:
+        """Read chunks in file order until every summary channel whose schema the summary does not
+        repeat has it (the spec lets a summary repeat channels without their schemas): usually
+        the first chunk."""
+        lrn = self._l
+        assert lrn.summary is not None
+        for ci in sorted(lrn.summary.chunk_indexes, key=lambda ci: ci.chunk_start_offset):
+            if not lrn.unresolved:
+                return
+            self._read_chunk(ChunkRef(ci.chunk_start_offset, ci.message_start_time, ci.message_end_time,
+                                      ci.chunk_length))
+        for cid, sid in lrn.unresolved.items():
+            self.warn(f"{self.path}: channel {cid} ({lrn.channels[cid].topic}) names schema {sid}, which no "
+                      "readable record defines: its messages are read without a schema")
 
     # -- listing ----------------------------------------------------------------
     def channels(self) -> list[ChannelInfo]:
@@ -281,14 +319,29 @@ class McapLog(LogReader):
         return dict(lrn.counts) if lrn.counts is not None else None
 
     def checksums(self) -> str:
-        crcs = self._chunks_crc + ([] if self._l.indexed else self._l.crcs)
-        if self._l.indexed and not crcs:
+        lrn = self._l
+        crcs = self._chunks_crc + ([] if lrn.indexed else lrn.crcs)
+        if lrn.data_crc in ("held", "failed"):  # an unchunked file's records, checked whole
+            crcs = crcs + [True]
+        if lrn.indexed and not crcs:
             return "unknown"
         if crcs and all(crcs):
             return "all"
         if any(crcs):
             return "some"
         return "none"
+
+    def checksum_checks(self) -> dict[str, str]:
+        lrn = self._l
+        crcs = self._chunks_crc + ([] if lrn.indexed else lrn.crcs)
+        failed = len(lrn.crc_failed)
+        if failed:
+            chunks = "failed"
+        elif not crcs:
+            chunks = "unread" if lrn.indexed else "none"
+        else:
+            chunks = "held" if all(crcs) else "some" if any(crcs) else "absent"
+        return {"chunks": chunks, "data_section": lrn.data_crc, "summary": lrn.summary_crc}
 
     def frame_table(self, topic: str) -> FrameTable:
         lrn = self._l
@@ -475,6 +528,8 @@ class McapLog(LogReader):
 
     def _skipped_chunk(self, ref: ChunkRef, reason: str) -> None:
         self.report.count("skipped_chunks", ref.offset)
+        if "CRC" in reason:
+            self._l.crc_failed.add(ref.offset)
         self.warn(f"{self.path}: chunk at byte {ref.offset} is damaged: {reason}; "
                   f"skipped its messages (log time {ref.start}..{ref.end})")
 
@@ -486,6 +541,11 @@ class McapLog(LogReader):
         for at, r in records:
             if isinstance(r, Schema):
                 lrn.schemas.setdefault(r.id, schema_info(r))
+                for cid, sid in list(lrn.unresolved.items()):
+                    if sid == r.id:  # a summary channel's schema, found in the data
+                        del lrn.unresolved[cid]
+                        c = lrn.channels[cid]
+                        lrn.channels[cid] = ChannelInfo(cid, c.topic, c.message_encoding, lrn.schemas[sid], c.metadata)
             elif isinstance(r, Channel):
                 if r.id not in lrn.data_channels:
                     lrn.data_channels.add(r.id)
@@ -493,12 +553,13 @@ class McapLog(LogReader):
                     new = ChannelInfo(r.id, r.topic, r.message_encoding, lrn.schemas.get(r.schema_id),
                                       dict(r.metadata))
                     if old is not None and (old.topic, old.message_encoding, old.schema) != (
-                            new.topic, new.message_encoding, new.schema):
+                            new.topic, new.message_encoding, new.schema) and r.id not in lrn.unresolved:
                         self.report.index_damaged = True
                         self.warn(f"{self.path}: the summary describes channel {r.id} as {old.topic!r}, the data "
                                   f"as {r.topic!r}: using the data's")
                     if old is None or old != new:
                         lrn.channels[r.id] = new
+                        lrn.unresolved.pop(r.id, None)
             elif isinstance(r, Message):
                 out.append((at, r))
         return out
@@ -564,6 +625,7 @@ class McapLog(LogReader):
         """:meth:`_walk_records` with each record's length; of the records whose opcode is in
         ``heads``, only the first :data:`CHUNK_HEAD` bytes of the body."""
         self._walk_damage: RecordDamage | None = None
+        self._data_end: int | None = None  # where the DataEnd record is, once the walk reaches it
         pos = len(MAGIC)
         size = self._size
         try:
@@ -576,6 +638,7 @@ class McapLog(LogReader):
                 if pos + 9 + n > size:
                     raise RecordDamage(pos, f"a record claims {n} bytes, past the end of the file")
                 if op == OP_DATA_END or op == OP_FOOTER:
+                    self._data_end = pos if op == OP_DATA_END else None
                     return
                 if op in kinds or op in heads:
                     if n > MAX_CHUNK_BYTES:

@@ -55,7 +55,7 @@ class ChunkRef:
 def schema_info(s: Schema | None) -> SchemaInfo | None:
     if s is None or s.id == 0:
         return None
-    return SchemaInfo(s.name, s.encoding, bytes(s.data))
+    return SchemaInfo(s.name, s.encoding, bytes(s.data), s.id)
 
 
 def parse_record(cls: Any, body: bytes, pos: int) -> Any:

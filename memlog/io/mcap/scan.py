@@ -3,12 +3,14 @@ damaged index): one walk over the data section, up to the damage, learning where
 chunk and top-level message lies, the channels, the message counts and time ranges, and the frame
 tables. A chunk followed by its message indexes (what MCAP writers put after each chunk) is learned
 from them, its body not read: the passes read it, and find any damage in it then, as with an indexed
-log. A chunk without them, or with a channel not known yet (its Channel record lies inside), is read."""
+log. A chunk without them, or with a channel not known yet (its Channel record lies inside) or whose
+schema is not (a summary may repeat channels without their schemas), is read."""
 
 from __future__ import annotations
 
 import os
 import struct
+import zlib
 from collections.abc import Iterator
 from collections.abc import Set as AbstractSet
 from typing import IO, Any, Protocol
@@ -21,6 +23,7 @@ from memlog.io.mcap.records import (
     CHUNK_HEAD,
     OP_CHANNEL,
     OP_CHUNK,
+    OP_DATA_END,
     OP_MESSAGE,
     OP_MESSAGE_INDEX,
     OP_SCHEMA,
@@ -42,6 +45,9 @@ class McapLog(Protocol):
     _fh: IO[bytes]
     _l: Any  # the reader's learned structure, which the scan fills
     _walk_damage: RecordDamage | None
+    _data_end: int | None
+    _size: int
+    validate_crcs: bool
 
     def warn(self, msg: str) -> None: ...
     def _records_kept(self, pos: int, body: bytes) -> tuple[list[tuple[int, Any]], bool]: ...
@@ -50,6 +56,7 @@ class McapLog(Protocol):
     def _opcode_at(self, pos: int) -> int | None: ...
     def _read_chunk(self, ref: ChunkRef) -> list[tuple[int, Message]] | None: ...
     def _place(self, pos: int) -> str: ...
+    def _head(self, pos: int) -> tuple[int, int]: ...
 
 
 _Pending = tuple[int, int, bytes, dict[int, list[tuple[int, int]]]]  # chunk: offset, length, head, its indexes
@@ -64,6 +71,7 @@ class DataScan:
         self.counts: dict[int, int] = {}
         self.entries: dict[str, list[tuple[int, int, int]]] = {}
         self.pending: _Pending | None = None
+        self.chunked = False  # the walk met a chunk record
 
     def _note(self, ref: ChunkRef, msgs: list[tuple[int, Message]]) -> None:
         """Learn the chunk (or top-level message) at ``ref`` from its messages."""
@@ -101,6 +109,8 @@ class DataScan:
             self._note(ChunkRef(pos, start, end, 9 + n), msgs)
         except RecordDamage as exc:
             log.report.count("skipped_chunks", pos)
+            if "CRC" in exc.reason:
+                log._l.crc_failed.add(pos)
             log.warn(f"{log.path}: chunk at byte {pos} is damaged: {exc.reason}; skipped")
 
     def _settle(self, indexed: bool) -> None:
@@ -109,7 +119,8 @@ class DataScan:
             return
         pos, n, head, index = self.pending
         self.pending = None
-        if indexed and index and all(cid in self.log._l.channels for cid in index):
+        lrn = self.log._l
+        if indexed and index and all(cid in lrn.channels and cid not in lrn.unresolved for cid in index):
             start, end = struct.unpack_from("<QQ", head, 0)
             self._note_index(ChunkRef(pos, start, end, 9 + n), index)
         else:
@@ -139,6 +150,7 @@ class DataScan:
                     if len(body) < CHUNK_HEAD:
                         raise RecordDamage(pos, "chunk record is too short")
                     self.pending = (pos, n, body, {})
+                    self.chunked = True
             except RecordDamage as exc:
                 log.report.count("skipped_chunks", pos)
                 log.warn(f"{log.path}: record at byte {pos} is damaged: {exc.reason}; skipped")
@@ -146,12 +158,46 @@ class DataScan:
         damage = log._walk_damage
         self._settle(damage is None or log._opcode_at(damage.pos) not in (OP_MESSAGE_INDEX, None))
 
+    def _check_data_crc(self) -> None:
+        """An unchunked file's data-section CRC (its DataEnd record's), over every byte before
+        DataEnd; a chunked file's messages are covered by its chunk CRCs (not read again for this)."""
+        log = self.log
+        lrn = log._l
+        end = log._data_end
+        if end is None or log._walk_damage is not None:
+            lrn.data_crc = "absent"
+            return
+        op, n = log._head(end)
+        body = log._fh.read(min(n, 4))
+        crc = struct.unpack_from("<I", body)[0] if op == OP_DATA_END and len(body) == 4 else 0
+        if crc == 0:
+            lrn.data_crc = "absent"
+            return
+        if self.chunked or not log.validate_crcs:
+            lrn.data_crc = "unchecked"
+            return
+        got, at = 0, 0
+        log._fh.seek(0)
+        while at < end:
+            block = log._fh.read(min(1 << 20, end - at))
+            if not block:
+                break
+            got, at = zlib.crc32(block, got), at + len(block)
+        if got == crc:
+            lrn.data_crc = "held"
+            return
+        lrn.data_crc = "failed"
+        log.report.data_crc_failed = True
+        log.warn(f"{log.path}: the data section fails its CRC check (DataEnd record at byte {end}: expected "
+                 f"{crc:#010x}, got {got:#010x}): its records were kept, but any of them may be damaged")
+
     def run(self, past_damage: list[ChunkRef] | None = None, *, damage_known: bool = False) -> None:
         """Scan, then try ``past_damage`` (chunks the index knows that the walk did not reach)."""
         log = self.log
         counted_scan(os.path.realpath(log.path))
         self._walk()
         damage: RecordDamage | None = log._walk_damage
+        self._check_data_crc()
         later = [r for r in past_damage or [] if damage is None or r.offset > damage.pos]
         found_later = 0
         for ref in later:

@@ -14,6 +14,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
 from memlog._version import __version__
@@ -27,13 +28,37 @@ __all__ = ["McapLogWriter", "copy_log", "CopyStats"]
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
+class _IdWriter(Writer):
+    """The ``mcap`` library's writer, with schemas and channels registered under ids the caller
+    chooses (the library numbers them 1, 2, ... in the order they come): a copied log keeps its
+    ids. It reaches the library writer's private tables, which its summary is written from."""
+
+    def _register(self, record: Schema | Channel) -> None:
+        table = getattr(self, "_Writer__schemas" if isinstance(record, Schema) else "_Writer__channels")
+        stats = getattr(self, "_Writer__statistics")
+        table[record.id] = record
+        if isinstance(record, Schema):
+            stats.schema_count += 1
+        else:
+            stats.channel_count += 1
+        builder = getattr(self, "_Writer__chunk_builder")
+        if builder is not None:
+            (builder.add_schema if isinstance(record, Schema) else builder.add_channel)(record)
+            getattr(self, "_Writer__maybe_finalize_chunk")()
+        else:
+            record.write(getattr(self, "_Writer__record_builder"))
+
+
 class McapLogWriter:
     """Write an MCAP file atomically.
 
     ``add_schema``/``add_channel`` deduplicate identical definitions; ``channel_for``
     maps an input :class:`ChannelInfo` to an output channel id (registering it once), so
-    passthrough of another log is ``writer.write_raw(msg)`` per message. New JSON channels
-    come from ``add_json_channel`` + ``write_json``.
+    passthrough of another log is ``writer.write_raw(msg)`` per message. An input channel keeps
+    its id (from 1), and its schema the schema's id, unless another definition holds that id
+    already (memlog's own channels in a map log, a second input log): then it gets the next free
+    one. New JSON channels come from
+    ``add_json_channel`` + ``write_json``.
     """
 
     def __init__(
@@ -50,34 +75,43 @@ class McapLogWriter:
             raise LogWriteError(f"unknown compression {compression!r} (zstd, lz4, none)")
         self._file = AtomicFile(self.path)
         self._fh = self._file.fh
-        self._writer = Writer(
+        self._writer = _IdWriter(
             self._fh, chunk_size=chunk_size, compression=_COMPRESSION[compression], enable_crcs=True,
             enable_data_crcs=True,
         )
         self._writer.start(profile=profile, library=library or f"memlog {__version__}")
-        self._schemas: dict[tuple[str, str, bytes], int] = {}
-        self._channels: dict[tuple[str, str, int, tuple[tuple[str, str], ...]], int] = {}
+        self._schemas: dict[int, tuple[str, str, bytes]] = {}  # id -> definition
+        self._channels: dict[int, tuple[str, str, int, tuple[tuple[str, str], ...]]] = {}
         self._in_map: dict[tuple[Any, ...], int] = {}
         self.messages_written = 0
         self._closed = False
         self._finished = False
 
     # -- registration -----------------------------------------------------------
-    def add_schema(self, name: str, encoding: str, data: bytes) -> int:
+    def add_schema(self, name: str, encoding: str, data: bytes, schema_id: int = 0) -> int:
+        """The id of the schema record ``name``/``encoding``/``data``, registered on first use:
+        under ``schema_id`` when that is given and free, else under an identical schema's id or
+        the next free one."""
         key = (name, encoding, bytes(data))
-        sid = self._schemas.get(key)
-        if sid is None:
-            sid = self._schemas[key] = self._writer.register_schema(name, encoding, bytes(data))
+        sid = _place(self._schemas, key, schema_id or None)
+        if sid not in self._schemas:
+            self._schemas[sid] = key
+            self._writer._register(Schema(id=sid, name=name, encoding=encoding, data=key[2]))
         return sid
 
     def add_channel(
-        self, topic: str, message_encoding: str, schema_id: int, metadata: Mapping[str, str] | None = None
+        self, topic: str, message_encoding: str, schema_id: int, metadata: Mapping[str, str] | None = None,
+        channel_id: int | None = None,
     ) -> int:
+        """The id of the channel record, registered on first use (as :meth:`add_schema` places
+        ids: ``channel_id`` when given and free)."""
         meta = dict(metadata or {})
         key = (topic, message_encoding, schema_id, tuple(sorted(meta.items())))
-        cid = self._channels.get(key)
-        if cid is None:
-            cid = self._channels[key] = self._writer.register_channel(topic, message_encoding, schema_id, meta)
+        cid = _place(self._channels, key, channel_id)
+        if cid not in self._channels:
+            self._channels[cid] = key
+            self._writer._register(Channel(id=cid, topic=topic, message_encoding=message_encoding,
+                                           schema_id=schema_id, metadata=meta))
         return cid
 
     def channel_for(self, channel: ChannelInfo, source: str = "") -> int:
@@ -90,8 +124,10 @@ class McapLogWriter:
             sid = 0
             if channel.schema is not None:
                 s = channel.schema
-                sid = self.add_schema(s.name, s.encoding, s.data)
-            cid = self._in_map[key] = self.add_channel(channel.topic, channel.message_encoding, sid, channel.metadata)
+                sid = self.add_schema(s.name, s.encoding, s.data, s.id)
+            # a bag's connections count from 0, which MCAP tools may not expect: those are numbered anew
+            cid = self._in_map[key] = self.add_channel(channel.topic, channel.message_encoding, sid, channel.metadata,
+                                                       channel.id or None)
         return cid
 
     def add_json_channel(self, topic: str, schema_name: str, schema: Mapping[str, Any] | bytes) -> int:
@@ -164,6 +200,19 @@ class McapLogWriter:
             self.close()
         else:
             self.abort()
+
+
+def _place(table: Mapping[int, Any], key: Any, wanted: int | None) -> int:
+    """Where a record with definition ``key`` goes in ``table`` (id -> definition): ``wanted``
+    when it is free or holds the same definition already; else the id of the same definition, or
+    the next free id (from 1)."""
+    if wanted is not None and table.get(wanted, key) == key:
+        return wanted
+    same = next((i for i, k in table.items() if k == key), None)
+    if same is not None:
+        return same
+    free = max(table, default=0) + 1
+    return free if free <= 0xFFFF else next(i for i in range(1, 0x10000) if i not in table)
 
 
 class CopyStats:
