@@ -2,7 +2,8 @@
 the records a reader must yield beside each): memlog's reader, ``memlog inspect`` and ``memlog
 convert`` agree with the expected records on every file, keep channel and schema ids, and exit 0
 (:mod:`tests.mcap_corpus`; ``python benchmarks/mcap_conformance.py`` prints the same per feature).
-And every checksum the format has is checked: chunk, data-section and summary CRCs."""
+Camera logs written with every optional part of the format left out give the same frames. And
+every checksum the format has is checked: chunk, data-section and summary CRCs."""
 
 from __future__ import annotations
 
@@ -11,14 +12,15 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
+import hashlib
 
-from tests.conftest import skip_or_fail
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import IndexType, Writer
+
+from tests.conftest import FIXTURES, shared, skip_or_fail
 from tests.mcap_corpus import (CASES, CORPUS, check_convert, check_inspect, check_read, expected, library_read,
                                memlog_read, run_cli)
-
-pytestmark = pytest.mark.shared
-
 
 def _files(case: str) -> list[Path]:
     files = sorted((CORPUS / case).glob("*.mcap"))
@@ -33,6 +35,7 @@ def _failures(case: str, check) -> str:  # type: ignore[no-untyped-def]
     return "\n".join(f"{name}: {w}" for name, w in wrong.items() if w)
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("case", CASES)
 def test_reader_yields_the_expected_records(case: str) -> None:
     """Messages (channel id, sequence, times, data) in file order, channels and schemas with their
@@ -40,11 +43,13 @@ def test_reader_yields_the_expected_records(case: str) -> None:
     assert not _failures(case, check_read)
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("case", CASES)
 def test_inspect_counts_every_message_and_exits_0(case: str) -> None:
     assert not _failures(case, check_inspect)
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("case", CASES)
 def test_convert_keeps_every_record_and_id(case: str, tmp_path: Path) -> None:
     """``memlog convert`` exits 0; the output, read by the mcap library with CRCs validated, holds
@@ -53,6 +58,7 @@ def test_convert_keeps_every_record_and_id(case: str, tmp_path: Path) -> None:
     assert not _failures(case, lambda p: check_convert(p, tmp_path / f"{p.stem}.out.mcap"))
 
 
+@pytest.mark.shared
 def test_the_checks_fail_on_a_wrong_reader(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """The checks can fail: a reader that renumbers channels, or drops a message, is caught."""
     path = _files("TenMessages")[0].parent / "TenMessages-ch-chx-mx.mcap"
@@ -70,6 +76,7 @@ def _cli(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "memlog", *args], capture_output=True, text=True)
 
 
+@pytest.mark.shared
 def test_inspect_names_each_checksum_and_how_it_fared() -> None:
     unchunked = _files("TenMessages")[0].parent / "TenMessages.mcap"
     chunked = unchunked.parent / "TenMessages-ch-chx-mx-st-sum.mcap"
@@ -84,6 +91,7 @@ def test_inspect_names_each_checksum_and_how_it_fared() -> None:
     }
 
 
+@pytest.mark.shared
 def test_a_byte_flipped_in_an_unchunked_data_section_fails_its_crc(tmp_path: Path) -> None:
     """The DataEnd CRC covers an unchunked file's records: a flipped byte inside a message's data
     is damage (exit 3, the CRC named), and every message is still kept."""
@@ -107,6 +115,7 @@ def test_a_byte_flipped_in_an_unchunked_data_section_fails_its_crc(tmp_path: Pat
     assert bad.read_bytes() == bytes(data)  # the input is left as it was
 
 
+@pytest.mark.shared
 def test_a_summary_that_fails_its_crc_is_not_used(tmp_path: Path) -> None:
     """A byte flipped in the summary: the footer's summary CRC fails, the reader says so, reads the
     data instead (every message kept) and ends with exit 3."""
@@ -122,3 +131,65 @@ def test_a_summary_that_fails_its_crc_is_not_used(tmp_path: Path) -> None:
     assert any("summary section fails its CRC check" in w for w in report["warnings"])
     got, damage = memlog_read(bad)
     assert got["messages"] == expected(src)["messages"] and damage
+
+
+#: the mcap library's writer options that leave out an optional part of an MCAP file
+VARIANTS: dict[str, dict[str, object]] = {
+    "no message indexes": {"index_types": IndexType.CHUNK},
+    "no message indexes, no statistics": {"index_types": IndexType.CHUNK, "use_statistics": False},
+    "no indexes at all": {"index_types": IndexType.NONE},
+    "no channels or schemas in the summary": {"repeat_channels": False, "repeat_schemas": False},
+    "channels in the summary without their schemas": {"repeat_schemas": False},
+    "no summary offsets": {"use_summary_offsets": False},
+    "unchunked": {"use_chunking": False},
+    "unchunked, with a data-section CRC": {"use_chunking": False, "enable_data_crcs": True},
+}
+
+
+def _rewrite(src: Path, dst: Path, options: dict[str, object]) -> None:
+    """``src`` written again by the mcap library with ``options`` (same ids, records and order)."""
+    with open(src, "rb") as fh, open(dst, "wb") as out:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None
+        w = Writer(out, chunk_size=64 * 1024, **options)  # type: ignore[arg-type]
+        w.start(reader.get_header().profile, "test")
+        for sid in sorted(summary.schemas):
+            s = summary.schemas[sid]
+            assert w.register_schema(s.name, s.encoding, s.data) == sid
+        for cid in sorted(summary.channels):
+            c = summary.channels[cid]
+            assert w.register_channel(c.topic, c.message_encoding, c.schema_id, c.metadata) == cid
+        for _, c, m in reader.iter_messages(log_time_order=False):
+            w.add_message(c.id, m.log_time, m.data, m.publish_time, m.sequence)
+        w.finish()
+
+
+def _frames(path: Path) -> tuple[list[tuple[str, int, int, str]], list[str]]:
+    from memlog.io import open_log
+    from memlog.io._opened import clear_cache
+
+    clear_cache()
+    with open_log(path) as log:
+        log.quiet_warnings()
+        frames = [(f.topic, f.index, f.log_time_ns, hashlib.sha256(f.decode_bgr().tobytes()).hexdigest())
+                  for f in log.frames()]
+        return frames, log.report.damage()
+
+
+@pytest.mark.parametrize("log", [FIXTURES / "demo.mcap", "euroc_micro_ros2.mcap"], ids=["demo", "euroc"])
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_a_camera_log_without_optional_parts_gives_the_same_frames(log: Path | str, variant: str,
+                                                                   tmp_path: Path) -> None:
+    """The corpus has no camera topic: a camera log written with an optional part of the format
+    left out (message indexes, statistics, the summary's channels or schemas, chunks) numbers and
+    decodes the same frames as the log as recorded, reports no damage, and ``memlog inspect``
+    exits 0."""
+    src = log if isinstance(log, Path) else shared(log)
+    variant_log = tmp_path / "variant.mcap"
+    _rewrite(src, variant_log, VARIANTS[variant])
+    want, damage = _frames(src)
+    assert want and not damage
+    assert _frames(variant_log) == (want, [])
+    rc, _, err = run_cli("inspect", "-q", str(variant_log))
+    assert rc == 0, err

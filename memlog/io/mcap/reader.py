@@ -349,8 +349,13 @@ class McapLog(LogReader):
         if table is not None:
             return table
         if lrn.indexed:
-            why = self._index_tables()
-            if why:
+            assert lrn.summary is not None
+            if any(not ci.message_index_offsets for ci in lrn.summary.chunk_indexes):
+                # message indexes are optional (MCAP spec): without them, one scan of the data numbers the frames
+                _LOG.info("%s: no message indexes: numbering frames from a scan of the data", self.path)
+                self._scan()
+                lrn.indexed = False
+            elif why := self._index_tables():
                 self.report.index_damaged = True
                 self.warn(f"{self.path}: the message index is {why}: numbering frames from a scan of the data")
                 self._scan()
