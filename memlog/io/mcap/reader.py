@@ -157,6 +157,10 @@ class McapLog(LogReader):
         self._said = self._l.said
         self._l.header = self._read_header()
         self._open_summary()
+        for cid, sid in self._l.unresolved.items():
+            self.report.index_damaged = True
+            self.warn(f"{self.path}: channel {cid} ({self._l.channels[cid].topic}) names schema {sid}, which no "
+                      "readable record defines: its messages are read without a schema")
         self._l.report = copy.deepcopy(self.report)
         return self._l
 
@@ -302,9 +306,6 @@ class McapLog(LogReader):
                 return
             self._read_chunk(ChunkRef(ci.chunk_start_offset, ci.message_start_time, ci.message_end_time,
                                       ci.chunk_length))
-        for cid, sid in lrn.unresolved.items():
-            self.warn(f"{self.path}: channel {cid} ({lrn.channels[cid].topic}) names schema {sid}, which no "
-                      "readable record defines: its messages are read without a schema")
 
     # -- listing ----------------------------------------------------------------
     def channels(self) -> list[ChannelInfo]:
