@@ -86,9 +86,28 @@ def test_inspect_names_each_checksum_and_how_it_fared() -> None:
         assert rc == 0
         checks[path.name] = json.loads(out)["checksum_checks"]
     assert checks == {
-        "TenMessages.mcap": {"chunks": "none", "data_section": "held", "summary": "none"},
-        "TenMessages-ch-chx-mx-st-sum.mcap": {"chunks": "held", "data_section": "unchecked", "summary": "held"},
+        "TenMessages.mcap": {"chunks": "none", "data_section": "held", "summary": "none", "attachments": "none"},
+        "TenMessages-ch-chx-mx-st-sum.mcap": {"chunks": "held", "data_section": "unchecked", "summary": "held",
+                                              "attachments": "none"},
     }
+
+
+@pytest.mark.shared
+def test_an_attachment_that_fails_its_crc_is_reported_and_skipped(tmp_path: Path) -> None:
+    src = _files("OneAttachment")[0].parent / "OneAttachment-ax.mcap"
+    rc, out, _ = run_cli("inspect", "--json", "-q", str(src))
+    assert rc == 0 and json.loads(out)["checksum_checks"]["attachments"] == "held"
+    data = bytearray(src.read_bytes())
+    (name, media_type, _lt, _ct, _data), = expected(src)["attachments"]
+    data[data.index(media_type.encode()) + len(media_type) + 8] ^= 0xFF  # the first byte of its data
+    bad = tmp_path / "attachment.mcap"
+    bad.write_bytes(bytes(data))
+    rc, out, _ = run_cli("inspect", "--json", "-q", str(bad))
+    report = json.loads(out)
+    assert rc == 3 and report["checksum_checks"]["attachments"] == "failed"
+    assert any(f"attachment {name!r} fails its CRC check" in w for w in report["warnings"])
+    rc, _, err = run_cli("convert", "-q", str(bad), "-o", str(tmp_path / "out.mcap"))
+    assert rc == 3 and library_read(tmp_path / "out.mcap")[0]["attachments"] == []
 
 
 @pytest.mark.shared

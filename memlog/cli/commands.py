@@ -82,6 +82,9 @@ _CHECKS = {
                                           "unchecked": "not checked (the chunk CRCs cover the messages)"}),
     "summary": ("summary CRC", {"held": "held", "failed": "FAILED (the data was read instead)", "absent": "none written",
                                 "none": "no summary"}),
+    "attachments": ("attachment CRCs", {"held": "held on every attachment", "some": "some attachments have none",
+                                        "absent": "none written", "failed": "FAILED on an attachment (skipped)",
+                                        "none": "no attachments", "unread": "not read"}),
 }
 
 
@@ -92,6 +95,8 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
     with open_log(args.log) as log:
         inf = log.info(scan=True)  # read every record: counts are the data's, checksums verified
+        for _ in log.attachments():  # (their CRCs too)
+            pass
         checks = _CHECKSUMS[log.checksums()]
         if args.json:
             d = asdict(inf)

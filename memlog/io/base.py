@@ -155,8 +155,9 @@ class LogReader(ABC):
         ``chunks`` ("held": every chunk read had a CRC and it matched, "some", "absent", "failed",
         "none": no chunks, "unread"), ``data_section`` (the CRC over an unchunked file's records:
         "held", "failed", "absent", "unchecked": a chunked file's chunk CRCs cover its messages)
-        and ``summary`` ("held", "failed", "absent", "none": no summary). Empty where the format
-        has at most one kind."""
+        ``summary`` ("held", "failed", "absent", "none": no summary) and ``attachments`` (their
+        CRCs: "held", "some", "absent", "failed", "none": no attachment, "unread"). Empty where
+        the format has at most one kind."""
         return {}
 
     def close(self) -> None:

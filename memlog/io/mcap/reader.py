@@ -28,6 +28,7 @@ import heapq
 import logging
 import os
 import struct
+import zlib
 from collections import OrderedDict
 from collections.abc import Iterator
 from collections.abc import Set as AbstractSet
@@ -103,6 +104,8 @@ class _Learned:
     summary_crc: str = "absent"  # the footer's summary CRC: "held", "failed" or "absent"
     data_crc: str = "absent"  # the DataEnd record's CRC of the data section: "held", "failed", "absent", "unchecked"
     crc_failed: set[int] = field(default_factory=set)  # offsets of the chunks that failed their CRC check
+    attachment_crcs: dict[int, str] = field(default_factory=dict)  # attachment offset -> "held", "failed", "absent"
+    attachments_read: bool = False  # every attachment record was read (and its CRC checked)
 
     @property
     def scanned(self) -> bool:
@@ -342,7 +345,10 @@ class McapLog(LogReader):
             chunks = "unread" if lrn.indexed else "none"
         else:
             chunks = "held" if all(crcs) else "some" if any(crcs) else "absent"
-        return {"chunks": chunks, "data_section": lrn.data_crc, "summary": lrn.summary_crc}
+        kinds = set(lrn.attachment_crcs.values())
+        attachments = ("failed" if "failed" in kinds else "some" if len(kinds) > 1 else kinds.pop() if kinds
+                       else "none" if lrn.attachments_read else "unread")
+        return {"chunks": chunks, "data_section": lrn.data_crc, "summary": lrn.summary_crc, "attachments": attachments}
 
     def frame_table(self, topic: str) -> FrameTable:
         lrn = self._l
@@ -678,11 +684,31 @@ class McapLog(LogReader):
             yield m.name, dict(m.metadata)
 
     def attachments(self) -> Iterator[Attachment]:
+        """Every attachment record, its CRC checked where it has one (one that fails is reported
+        and skipped, as a chunk is)."""
+        crcs = self._l.attachment_crcs
         for pos, _op, body in self._records({OP_ATTACHMENT}):
             try:
                 a = parse_record(McapAttachment, body, pos)
+                crcs[pos] = self._attachment_crc(pos, body, a)
             except RecordDamage as exc:
                 if self.report.count("bad_messages", ("attachment", pos)):
                     self.warn(f"{self.path}: attachment record at byte {pos} is damaged ({exc.reason}); skipped")
                 continue
             yield Attachment(a.name, a.media_type, a.log_time, a.create_time, bytes(a.data))
+        self._l.attachments_read = True
+
+    def _attachment_crc(self, pos: int, body: bytes, a: McapAttachment) -> str:
+        """"held" or "absent" (0) for the CRC that ends attachment ``a`` (its record ``body`` at
+        ``pos``: the CRC covers every field before it); raises :class:`RecordDamage` when it fails."""
+        if not self.validate_crcs:
+            return "absent"
+        end = 8 + 8 + 4 + len(a.name.encode()) + 4 + len(a.media_type.encode()) + 8 + len(a.data)
+        (crc,) = struct.unpack_from("<I", body, end)
+        if crc == 0:
+            return "absent"
+        got = zlib.crc32(body[:end])
+        if got != crc:
+            self._l.attachment_crcs[pos] = "failed"
+            raise RecordDamage(pos, f"attachment {a.name!r} fails its CRC check (expected {crc:#010x}, got {got:#010x})")
+        return "held"
