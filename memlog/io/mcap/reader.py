@@ -28,7 +28,6 @@ import heapq
 import logging
 import os
 import struct
-import zlib
 from collections import OrderedDict
 from collections.abc import Iterator
 from collections.abc import Set as AbstractSet
@@ -61,6 +60,7 @@ from memlog.io.mcap.records import (
     OP_METADATA,
     ChunkRef,
     RecordDamage,
+    attachment_crc,
     chunk_data,
     parse_record,
     records_of,
@@ -690,25 +690,11 @@ class McapLog(LogReader):
         for pos, _op, body in self._records({OP_ATTACHMENT}):
             try:
                 a = parse_record(McapAttachment, body, pos)
-                crcs[pos] = self._attachment_crc(pos, body, a)
+                crcs[pos] = "failed"  # unless attachment_crc returns
+                crcs[pos] = attachment_crc(body, a, pos) if self.validate_crcs else "absent"
             except RecordDamage as exc:
                 if self.report.count("bad_messages", ("attachment", pos)):
                     self.warn(f"{self.path}: attachment record at byte {pos} is damaged ({exc.reason}); skipped")
                 continue
             yield Attachment(a.name, a.media_type, a.log_time, a.create_time, bytes(a.data))
         self._l.attachments_read = True
-
-    def _attachment_crc(self, pos: int, body: bytes, a: McapAttachment) -> str:
-        """"held" or "absent" (0) for the CRC that ends attachment ``a`` (its record ``body`` at
-        ``pos``: the CRC covers every field before it); raises :class:`RecordDamage` when it fails."""
-        if not self.validate_crcs:
-            return "absent"
-        end = 8 + 8 + 4 + len(a.name.encode()) + 4 + len(a.media_type.encode()) + 8 + len(a.data)
-        (crc,) = struct.unpack_from("<I", body, end)
-        if crc == 0:
-            return "absent"
-        got = zlib.crc32(body[:end])
-        if got != crc:
-            self._l.attachment_crcs[pos] = "failed"
-            raise RecordDamage(pos, f"attachment {a.name!r} fails its CRC check (expected {crc:#010x}, got {got:#010x})")
-        return "held"

@@ -20,7 +20,7 @@ from memlog.io.records import SchemaInfo
 __all__ = ["MAGIC", "FOOTER_LEN", "KNOWN_OPS", "CHUNK_HEAD", "OP_HEADER", "OP_FOOTER", "OP_SCHEMA", "OP_CHANNEL",
            "OP_MESSAGE", "OP_CHUNK", "OP_MESSAGE_INDEX", "OP_CHUNK_INDEX", "OP_ATTACHMENT", "OP_METADATA",
            "OP_DATA_END", "OP_STATISTICS", "RecordDamage", "ChunkRef", "schema_info", "parse_record",
-           "chunk_records", "chunk_data", "records_of", "frame_table_of"]
+           "chunk_records", "chunk_data", "records_of", "frame_table_of", "attachment_crc"]
 
 MAGIC = b"\x89MCAP0\r\n"
 FOOTER_LEN = 1 + 8 + 8 + 8 + 4  # opcode, length, summary_start, summary_offset_start, summary_crc
@@ -67,6 +67,20 @@ def parse_record(cls: Any, body: bytes, pos: int) -> Any:
     if stream.count > len(body):
         raise RecordDamage(pos, f"{cls.__name__} record is longer than its length field")
     return rec
+
+
+def attachment_crc(body: bytes, a: Any, pos: int) -> str:
+    """The CRC that ends attachment ``a`` (parsed from its record ``body`` at ``pos``; it covers
+    every field before it): "held", or "absent" when it is 0. Raises :class:`RecordDamage` when it
+    fails (the ``mcap`` library does not check it)."""
+    end = 8 + 8 + 4 + len(a.name.encode()) + 4 + len(a.media_type.encode()) + 8 + len(a.data)
+    (crc,) = struct.unpack_from("<I", body, end)
+    if crc == 0:
+        return "absent"
+    got = zlib.crc32(body[:end])
+    if got != crc:
+        raise RecordDamage(pos, f"attachment {a.name!r} fails its CRC check (expected {crc:#010x}, got {got:#010x})")
+    return "held"
 
 
 def chunk_records(body: bytes, pos: int, validate_crc: bool) -> tuple[list[tuple[int, Any]], bool]:
