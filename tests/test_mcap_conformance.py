@@ -63,9 +63,15 @@ def test_the_checks_fail_on_a_wrong_reader(monkeypatch: pytest.MonkeyPatch, tmp_
     """The checks can fail: a reader that renumbers channels, or drops a message, is caught."""
     path = _files("TenMessages")[0].parent / "TenMessages-ch-chx-mx.mcap"
     assert check_read(path) == [] and check_convert(path, tmp_path / "a.mcap") == []
-    from memlog.io.mcap import writer
+    from memlog.io.mcap.writer import McapLogWriter
 
-    monkeypatch.setattr(writer, "_place", lambda table, key, wanted: max(table, default=0) + 7)
+    register = McapLogWriter.register_input
+
+    def renumbering(self: McapLogWriter, reader) -> None:  # type: ignore[no-untyped-def]
+        self.add_channel("/first", "json", 0)  # takes channel id 1
+        register(self, reader)
+
+    monkeypatch.setattr(McapLogWriter, "register_input", renumbering)
     assert "output channels" in check_convert(path, tmp_path / "b.mcap")
     want = expected(path)
     monkeypatch.setattr("tests.mcap_corpus.expected", lambda p: {**want, "messages": want["messages"][1:]})
@@ -168,6 +174,32 @@ def test_a_summary_that_fails_its_crc_is_not_used(tmp_path: Path) -> None:
     assert any("summary section fails its CRC check" in w for w in report["warnings"])
     got, damage = memlog_read(bad)
     assert got["messages"] == expected(src)["messages"] and damage
+
+
+def test_ids_that_leave_a_gap_are_numbered_anew_and_said(tmp_path: Path) -> None:
+    """The mcap library numbers channels 1, 2, ... as they come: an input whose channel ids leave a
+    gap (3 and 2 here) cannot keep them; its channels are written in the order of their ids, each
+    message stays with its topic, and the log says which channel got which id."""
+    from mcap.data_stream import RecordBuilder
+    from mcap.records import Channel, DataEnd, Footer, Header, Message, Schema
+
+    b = RecordBuilder()
+    Header(profile="", library="test").write(b)
+    Schema(id=1, name="s", encoding="jsonschema", data=b"{}").write(b)
+    for cid in (3, 2):
+        Channel(id=cid, topic=f"/c{cid}", message_encoding="json", schema_id=1, metadata={}).write(b)
+        Message(channel_id=cid, sequence=cid, log_time=cid, publish_time=cid, data=b"{}").write(b)
+    DataEnd(0).write(b)
+    Footer(0, 0, 0).write(b)
+    magic = b"\x89MCAP0\r\n"
+    src = tmp_path / "gap.mcap"
+    src.write_bytes(magic + b.end() + magic)
+    rc, _, err = run_cli("convert", str(src), "-o", str(tmp_path / "out.mcap"))
+    assert rc == 0, err
+    got, _ = library_read(tmp_path / "out.mcap")
+    assert {i: c[0] for i, c in got["channels"].items()} == {1: "/c2", 2: "/c3"}
+    assert [(got["channels"][m[0]][0], m[1]) for m in got["messages"]] == [("/c3", 3), ("/c2", 2)]
+    assert "channel 3 (/c3) is written as channel 2" in err
 
 
 #: the mcap library's writer options that leave out an optional part of an MCAP file

@@ -129,8 +129,7 @@ class AnnotatedLogWriter:
         self.reader = reader
         self.config = config
         self.w = McapLogWriter(path, profile=reader.profile)
-        for ch in reader.channels():
-            self.w.channel_for(ch)
+        self.w.register_input(reader)
         self.family = family_of(reader, topics)
         self.out = MemlogChannels(self.w, self.family)
         self._chans: dict[str, dict[str, int]] = {}

@@ -8,13 +8,13 @@ leaves a half file under the final name. zstd chunks, CRCs, summary and indexes 
 from __future__ import annotations
 
 import json
+import logging
 import os
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
 from memlog._version import __version__
@@ -25,28 +25,9 @@ from memlog.io.records import ChannelInfo, RawMessage
 
 __all__ = ["McapLogWriter", "copy_log", "CopyStats"]
 
+_LOG = logging.getLogger("memlog.io")
+
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-
-
-class _IdWriter(Writer):
-    """The ``mcap`` library's writer, with schemas and channels registered under ids the caller
-    chooses (the library numbers them 1, 2, ... in the order they come): a copied log keeps its
-    ids. It reaches the library writer's private tables, which its summary is written from."""
-
-    def _register(self, record: Schema | Channel) -> None:
-        table = getattr(self, "_Writer__schemas" if isinstance(record, Schema) else "_Writer__channels")
-        stats = getattr(self, "_Writer__statistics")
-        table[record.id] = record
-        if isinstance(record, Schema):
-            stats.schema_count += 1
-        else:
-            stats.channel_count += 1
-        builder = getattr(self, "_Writer__chunk_builder")
-        if builder is not None:
-            (builder.add_schema if isinstance(record, Schema) else builder.add_channel)(record)
-            getattr(self, "_Writer__maybe_finalize_chunk")()
-        else:
-            record.write(getattr(self, "_Writer__record_builder"))
 
 
 class McapLogWriter:
@@ -54,10 +35,11 @@ class McapLogWriter:
 
     ``add_schema``/``add_channel`` deduplicate identical definitions; ``channel_for``
     maps an input :class:`ChannelInfo` to an output channel id (registering it once), so
-    passthrough of another log is ``writer.write_raw(msg)`` per message. An input channel keeps
-    its id (from 1), and its schema the schema's id, unless another definition holds that id
-    already (memlog's own channels in a map log, a second input log): then it gets the next free
-    one. New JSON channels come from
+    passthrough of another log is ``writer.write_raw(msg)`` per message. :meth:`register_input`
+    registers an input log's schemas and channels first, in the order of their ids, so that they
+    keep them: the ``mcap`` library numbers schemas and channels 1, 2, 3... as they come, so an
+    id is kept when the input's ids run from 1 without a gap (as every MCAP writer numbers them);
+    the others are numbered anew (said in the log). New JSON channels come from
     ``add_json_channel`` + ``write_json``.
     """
 
@@ -75,12 +57,12 @@ class McapLogWriter:
             raise LogWriteError(f"unknown compression {compression!r} (zstd, lz4, none)")
         self._file = AtomicFile(self.path)
         self._fh = self._file.fh
-        self._writer = _IdWriter(
+        self._writer = Writer(
             self._fh, chunk_size=chunk_size, compression=_COMPRESSION[compression], enable_crcs=True,
             enable_data_crcs=True,
         )
         self._writer.start(profile=profile, library=library or f"memlog {__version__}")
-        self._schemas: dict[int, tuple[str, str, bytes]] = {}  # id -> definition
+        self._schemas: dict[int, tuple[str, str, bytes]] = {}  # id -> definition, as the library numbered them
         self._channels: dict[int, tuple[str, str, int, tuple[tuple[str, str], ...]]] = {}
         self._in_map: dict[tuple[Any, ...], int] = {}
         self.messages_written = 0
@@ -89,30 +71,38 @@ class McapLogWriter:
 
     # -- registration -----------------------------------------------------------
     def add_schema(self, name: str, encoding: str, data: bytes, schema_id: int = 0) -> int:
-        """The id of the schema record ``name``/``encoding``/``data``, registered on first use:
-        under ``schema_id`` when that is given and free, else under an identical schema's id or
-        the next free one."""
+        """The id of the schema record ``name``/``encoding``/``data``, registered on first use.
+        ``schema_id``: the id it should keep (an input's); where the library's next id is not it,
+        an identical schema's id serves, else the next id."""
         key = (name, encoding, bytes(data))
-        sid = _place(self._schemas, key, schema_id or None)
-        if sid not in self._schemas:
-            self._schemas[sid] = key
-            self._writer._register(Schema(id=sid, name=name, encoding=encoding, data=key[2]))
-        return sid
+        return _register(self._schemas, key, schema_id or None,
+                         lambda: self._writer.register_schema(name, encoding, key[2]))
 
     def add_channel(
         self, topic: str, message_encoding: str, schema_id: int, metadata: Mapping[str, str] | None = None,
         channel_id: int | None = None,
     ) -> int:
-        """The id of the channel record, registered on first use (as :meth:`add_schema` places
-        ids: ``channel_id`` when given and free)."""
+        """The id of the channel record, registered on first use (``channel_id`` as
+        :meth:`add_schema`'s ``schema_id``)."""
         meta = dict(metadata or {})
         key = (topic, message_encoding, schema_id, tuple(sorted(meta.items())))
-        cid = _place(self._channels, key, channel_id)
-        if cid not in self._channels:
-            self._channels[cid] = key
-            self._writer._register(Channel(id=cid, topic=topic, message_encoding=message_encoding,
-                                           schema_id=schema_id, metadata=meta))
-        return cid
+        return _register(self._channels, key, channel_id,
+                         lambda: self._writer.register_channel(topic, message_encoding, schema_id, meta))
+
+    def register_input(self, reader: LogReader) -> None:
+        """Register ``reader``'s schemas, then its channels, each in the order of their ids
+        (before anything else is registered, they keep their ids: see the class doc); an MCAP
+        channel that cannot keep its id is named in the log (a bag's connection ids are no
+        channel ids)."""
+        channels = sorted(reader.channels(), key=lambda c: c.id)
+        schemas = {c.schema.id: c.schema for c in channels if c.schema is not None and c.schema.id}
+        for sid in sorted(schemas):
+            s = schemas[sid]
+            self.add_schema(s.name, s.encoding, s.data, sid)
+        for ch in channels:
+            cid = self.channel_for(ch)
+            if cid != ch.id and reader.format == "mcap":
+                _LOG.info("%s: channel %d (%s) is written as channel %d", self.path, ch.id, ch.topic, cid)
 
     def channel_for(self, channel: ChannelInfo, source: str = "") -> int:
         """Output channel id of an input channel (registered with the same schema on first use).
@@ -125,9 +115,8 @@ class McapLogWriter:
             if channel.schema is not None:
                 s = channel.schema
                 sid = self.add_schema(s.name, s.encoding, s.data, s.id)
-            # a bag's connections count from 0, which MCAP tools may not expect: those are numbered anew
             cid = self._in_map[key] = self.add_channel(channel.topic, channel.message_encoding, sid, channel.metadata,
-                                                       channel.id or None)
+                                                       channel.id)
         return cid
 
     def add_json_channel(self, topic: str, schema_name: str, schema: Mapping[str, Any] | bytes) -> int:
@@ -202,17 +191,20 @@ class McapLogWriter:
             self.abort()
 
 
-def _place(table: Mapping[int, Any], key: Any, wanted: int | None) -> int:
-    """Where a record with definition ``key`` goes in ``table`` (id -> definition): ``wanted``
-    when it is free or holds the same definition already; else the id of the same definition, or
-    the next free id (from 1)."""
-    if wanted is not None and table.get(wanted, key) == key:
+def _register(table: dict[int, Any], key: Any, wanted: int | None, register: Callable[[], int]) -> int:
+    """The id of a record with definition ``key`` in ``table`` (id -> definition, as the library
+    numbered them): ``wanted`` when it holds that definition, or when it is the id the library
+    gives next (``register`` registers the record and returns its id); else an id that holds the
+    same definition, else the next id."""
+    if wanted is not None and table.get(wanted) == key:
         return wanted
-    same = next((i for i, k in table.items() if k == key), None)
-    if same is not None:
-        return same
-    free = max(table, default=0) + 1
-    return free if free <= 0xFFFF else next(i for i in range(1, 0x10000) if i not in table)
+    if wanted != len(table) + 1:
+        same = next((i for i, k in table.items() if k == key), None)
+        if same is not None:
+            return same
+    got = register()
+    table[got] = key
+    return got
 
 
 class CopyStats:
@@ -238,8 +230,7 @@ def copy_log(
     message stream (a progress bar). Messages stream in file order unless ``log_time_order``.
     """
     stats = CopyStats()
-    for ch in reader.channels():
-        writer.channel_for(ch)
+    writer.register_input(reader)
     stream = reader.messages(log_time_order=log_time_order)
     for msg in wrap(stream) if wrap is not None else stream:
         writer.write_raw(msg)
