@@ -101,7 +101,7 @@ class _Learned:
     report: ReadReport | None = None  # what opening found (copied into every reader's report)
     places: dict[int, str] = field(default_factory=dict)  # damage_place() of each damage found
     unresolved: dict[int, int] = field(default_factory=dict)  # channel id -> its schema's id, not read yet
-    summary_crc: str = "absent"  # the footer's summary CRC: "held", "failed" or "absent"
+    summary_crc: str = "none"  # the footer's summary CRC: "held", "failed", "absent" (0) or "none" (no summary)
     data_crc: str = "absent"  # the DataEnd record's CRC of the data section: "held", "failed", "absent", "unchecked"
     crc_failed: set[int] = field(default_factory=set)  # offsets of the chunks that failed their CRC check
     attachment_crcs: dict[int, str] = field(default_factory=dict)  # attachment offset -> "held", "failed", "absent"
@@ -191,8 +191,6 @@ class McapLog(LogReader):
         fails its CRC, does not parse or disagrees with the data is damage."""
         learned_ = self._l
         summary, summary_start, why, learned_.summary_crc = read_summary(self._fh, self._size)
-        if summary is None and learned_.summary_crc != "failed":
-            learned_.summary_crc = "none"
         if summary is None:
             if why.startswith("no summary section"):
                 _LOG.info("%s: %s: reading the data sequentially", self.path, why)
@@ -288,15 +286,14 @@ class McapLog(LogReader):
             release(self._key, self._holder)
             self._key = None
 
-    def _add_channel(self, c: Channel) -> ChannelInfo:
+    def _add_channel(self, c: Channel) -> None:
         """Register a summary channel; one whose schema only the data holds waits for it
         (:meth:`_resolve_schemas`)."""
         lrn = self._l
         if c.schema_id and c.schema_id not in lrn.schemas:
             lrn.unresolved[c.id] = c.schema_id
-        info = ChannelInfo(c.id, c.topic, c.message_encoding, lrn.schemas.get(c.schema_id), dict(c.metadata))
-        lrn.channels[c.id] = info
-        return info
+        lrn.channels[c.id] = ChannelInfo(c.id, c.topic, c.message_encoding, lrn.schemas.get(c.schema_id),
+                                         dict(c.metadata))
 
     def _resolve_schemas(self) -> None:
         """Read chunks in file order until every summary channel whose schema the summary does not
@@ -322,9 +319,13 @@ class McapLog(LogReader):
             return None
         return dict(lrn.counts) if lrn.counts is not None else None
 
+    def _chunk_crcs(self) -> list[bool]:
+        """Per chunk read (by this reader, or by the scan): whether its CRC was checked."""
+        return self._chunks_crc + ([] if self._l.indexed else self._l.crcs)
+
     def checksums(self) -> str:
         lrn = self._l
-        crcs = self._chunks_crc + ([] if lrn.indexed else lrn.crcs)
+        crcs = self._chunk_crcs()
         if lrn.data_crc in ("held", "failed"):  # an unchunked file's records, checked whole
             crcs = crcs + [True]
         if lrn.indexed and not crcs:
@@ -337,14 +338,9 @@ class McapLog(LogReader):
 
     def checksum_checks(self) -> dict[str, str]:
         lrn = self._l
-        crcs = self._chunks_crc + ([] if lrn.indexed else lrn.crcs)
-        failed = len(lrn.crc_failed)
-        if failed:
-            chunks = "failed"
-        elif not crcs:
-            chunks = "unread" if lrn.indexed else "none"
-        else:
-            chunks = "held" if all(crcs) else "some" if any(crcs) else "absent"
+        crcs = self._chunk_crcs()
+        chunks = ("failed" if lrn.crc_failed else ("unread" if lrn.indexed else "none") if not crcs
+                  else "held" if all(crcs) else "some" if any(crcs) else "absent")
         kinds = set(lrn.attachment_crcs.values())
         attachments = ("failed" if "failed" in kinds else "some" if len(kinds) > 1 else kinds.pop() if kinds
                        else "none" if lrn.attachments_read else "unread")
@@ -538,10 +534,14 @@ class McapLog(LogReader):
             places[pos] = damage_place(self._fh, pos, self._size)
         return places[pos]
 
-    def _skipped_chunk(self, ref: ChunkRef, reason: str) -> None:
-        self.report.count("skipped_chunks", ref.offset)
+    def _count_damaged_chunk(self, pos: int, reason: str) -> None:
+        """Count the damaged chunk at ``pos`` once (and whether its CRC failed); the caller says it."""
+        self.report.count("skipped_chunks", pos)
         if "CRC" in reason:
-            self._l.crc_failed.add(ref.offset)
+            self._l.crc_failed.add(pos)
+
+    def _skipped_chunk(self, ref: ChunkRef, reason: str) -> None:
+        self._count_damaged_chunk(ref.offset, reason)
         self.warn(f"{self.path}: chunk at byte {ref.offset} is damaged: {reason}; "
                   f"skipped its messages (log time {ref.start}..{ref.end})")
 
@@ -553,11 +553,6 @@ class McapLog(LogReader):
         for at, r in records:
             if isinstance(r, Schema):
                 lrn.schemas.setdefault(r.id, schema_info(r))
-                for cid, sid in list(lrn.unresolved.items()):
-                    if sid == r.id:  # a summary channel's schema, found in the data
-                        del lrn.unresolved[cid]
-                        c = lrn.channels[cid]
-                        lrn.channels[cid] = ChannelInfo(cid, c.topic, c.message_encoding, lrn.schemas[sid], c.metadata)
             elif isinstance(r, Channel):
                 if r.id not in lrn.data_channels:
                     lrn.data_channels.add(r.id)
@@ -571,7 +566,7 @@ class McapLog(LogReader):
                                   f"as {r.topic!r}: using the data's")
                     if old is None or old != new:
                         lrn.channels[r.id] = new
-                        lrn.unresolved.pop(r.id, None)
+                        lrn.unresolved.pop(r.id, None)  # a summary channel's schema, found with it in the data
             elif isinstance(r, Message):
                 out.append((at, r))
         return out

@@ -57,6 +57,7 @@ class McapLog(Protocol):
     def _read_chunk(self, ref: ChunkRef) -> list[tuple[int, Message]] | None: ...
     def _place(self, pos: int) -> str: ...
     def _head(self, pos: int) -> tuple[int, int]: ...
+    def _count_damaged_chunk(self, pos: int, reason: str) -> None: ...
 
 
 _Pending = tuple[int, int, bytes, dict[int, list[tuple[int, int]]]]  # chunk: offset, length, head, its indexes
@@ -108,9 +109,7 @@ class DataScan:
             start, end = struct.unpack_from("<QQ", body, 0)
             self._note(ChunkRef(pos, start, end, 9 + n), msgs)
         except RecordDamage as exc:
-            log.report.count("skipped_chunks", pos)
-            if "CRC" in exc.reason:
-                log._l.crc_failed.add(pos)
+            log._count_damaged_chunk(pos, exc.reason)
             log.warn(f"{log.path}: chunk at byte {pos} is damaged: {exc.reason}; skipped")
 
     def _settle(self, indexed: bool) -> None:

@@ -21,8 +21,8 @@ __all__ = ["read_summary", "SummaryRead"]
 
 class SummaryRead(NamedTuple):
     """What :func:`read_summary` found: the ``summary`` (None when it cannot be used), where it
-    starts, ``why`` it is not used ("" when it is), and its ``crc``: "held", "failed" or "absent"
-    (the footer gives none, or there is no summary)."""
+    starts, ``why`` it is not used ("" when it is), and its ``crc``: "held", "failed", "absent"
+    (the footer gives none) or "none" (there is no summary)."""
 
     summary: Summary | None
     start: int
@@ -34,17 +34,17 @@ def read_summary(fh: IO[bytes], size: int) -> SummaryRead:
     """The summary section of the MCAP file open as ``fh`` (``size`` bytes), read through the
     footer and checked (its CRC, every record parses)."""
     if size < len(MAGIC) * 2 + FOOTER_LEN:
-        return SummaryRead(None, 0, "the file is too short to hold a footer", "absent")
+        return SummaryRead(None, 0, "the file is too short to hold a footer", "none")
     fh.seek(size - len(MAGIC) - FOOTER_LEN)
     tail = fh.read(FOOTER_LEN + len(MAGIC))
     if tail[-len(MAGIC):] != MAGIC or tail[0] != OP_FOOTER:
-        return SummaryRead(None, 0, "no footer at the end (truncated or unfinished recording)", "absent")
+        return SummaryRead(None, 0, "no footer at the end (truncated or unfinished recording)", "none")
     start, _offset_start, crc = struct.unpack_from("<QQI", tail, 9)
     if start == 0:
-        return SummaryRead(None, 0, "no summary section (unindexed MCAP)", "absent")
+        return SummaryRead(None, 0, "no summary section (unindexed MCAP)", "none")
     footer_pos = size - len(MAGIC) - FOOTER_LEN
     if not len(MAGIC) < start <= footer_pos:
-        return SummaryRead(None, 0, f"the footer points to a summary at byte {start}, outside the file", "absent")
+        return SummaryRead(None, 0, f"the footer points to a summary at byte {start}, outside the file", "none")
     fh.seek(start)
     blob = fh.read(footer_pos - start)
     if crc != 0:
