@@ -122,7 +122,7 @@ def cell(row: dict[str, float]) -> str:
 
 def spread(row: Any) -> str:
     """Mean ± std of R@1 over every k-th frame's start offsets."""
-    return "-" if not row else f"{row['recall@1']:.3f} ± {row['std']['recall@1']:.3f} ({len(row['phases'])})"
+    return "-" if not row else f"{row['recall@1']:.3f} ± {row['std']['recall@1']:.3f} ({len(row['maps'])})"
 
 
 def candidates_table(cache: Path, pairs: list[str], keeps: list[str]) -> None:

@@ -218,6 +218,21 @@ BENCHES: list[Bench] = [
           "once): the Stromovka pairs (the drive pair also with odometry on its map drive), full, default, half and "
           "quarter maps",
           10, ("shared", "models"), defaults_anchor="the-whitening-ensemble"),
+    Bench("map_spread",
+          ("python", "benchmarks/map_spread.py", "--cache", "{work}/map-spread"),
+          "maps of every size over every shared pair (Stromovka frame-aligned and drive pair, Nordland dev and two "
+          "drive variants), one whitening per drive: the full map, memlog's default and half maps, every k-th "
+          "frame from every start offset and 10 random maps of each size, R@1 mean, std, min and max",
+          25, ("shared", "models")),
+    Bench("map_spread_kept",
+          ("python", "benchmarks/map_spread.py", "--cache", "{work}/map-spread", "--whiten", "kept"),
+          "the same maps, each whitened on its own kept frames (memlog before one whitening per drive)",
+          25, ("shared", "models")),
+    Bench("matcher_stages",
+          ("python", "benchmarks/map_spread.py", "--cache", "{work}/map-spread", "--stages"),
+          "every stage and option of the drive matcher on and off over every shared pair (the memorable and every "
+          "k-th maps of every offset, default and half size): the mean gain over the pairs and its spread",
+          60, ("shared", "models")),
     Bench("drive_maps",
           ("python", "benchmarks/drive_maps.py", "--scores", "{scores}", "--cache", "{work}/drive-maps"),
           "maps of Nordland drive variants that stop, crawl and speed up: memlog's map against every k-th frame and "
@@ -333,6 +348,9 @@ TITLES = {
     "drive_pair": "maps of every size on drives as cameras record them",
     "drive_pair_candidates": "does memorability choose better frames at camera resolution?",
     "whitening_spread": "a map's R@1 over refitted whitenings; the whitening ensemble",
+    "map_spread": "maps of every size over every shared pair, one whitening per drive",
+    "map_spread_kept": "the same maps, each whitened on its own kept frames (before)",
+    "matcher_stages": "does every matcher stage earn its keep?",
     "drive_maps": "maps of drives that stop, crawl and speed up",
     "selection_table": "selection modes against baselines",
     "shortlist_table": "`--candidates K` shortlists",

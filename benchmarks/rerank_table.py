@@ -47,7 +47,7 @@ def main() -> int:
     ap.add_argument("--pairs", nargs="+", default=list(MAPS), choices=list(MAPS))
     ap.add_argument("--maps", nargs="+", choices=list(FRACTIONS), help="Stromovka's maps (default full, half, default)")
     ap.add_argument("--map-args", default="", metavar="ARGS",
-                    help="more `memlog map` flags, e.g. \"--whiten-on drive\" (use a --cache of its own)")
+                    help="more `memlog map` flags, e.g. \"--no-whiten\" (use a --cache of its own)")
     a = ap.parse_args()
     a.cache.mkdir(parents=True, exist_ok=True)
     print("| data | map (frames) | matching | R@1 | R@5 | AUC-PR | P@50%R | map bytes/frame | ms/query |\n"

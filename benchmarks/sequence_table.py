@@ -19,14 +19,13 @@ similarity; sequences: the margin).
 
 Tables (``--tables``):
 
-* ``quality``: R@1 / AUC per query variant: single frames, sequence offline (constant speed and
-  DP paths), causal; full map, base reference;
+* ``quality``: R@1 / AUC per query variant: single frames, sequence offline, causal; full map, base
+  reference;
 * ``maps``: the same at full / half / quarter maps, and against references at other frame rates;
 * ``coords``: frames vs time vs positions coordinates;
-* ``design``: the score's design (pairs, normalisation, places competing for the best match);
 * ``sweep``: N (frames before/after) and K (candidates per frame) sweeps, and the confidence
   (margin vs score vs exclusion width);
-* ``speed``: speed range and path model: R@1 and ms per query;
+* ``speed``: speed range: R@1 and ms per query;
 * ``size``: ms per query against synthetic maps of 10^4 and 10^5 frames (the 800 real summer
   frames inside a drive of noisy copies of them), exact search and FAISS IVF, single vs
   sequence.
@@ -175,12 +174,10 @@ def f3(m: dict[str, float]) -> str:
 
 
 def methods() -> dict[str, Any]:
-    from memlog.matching import Experimental, SequenceConfig
+    from memlog.matching import SequenceConfig
 
     base = SequenceConfig()
-    dp = Experimental(path="dp")
-    return {"single": SequenceConfig(length=0), "offline": base, "offline dp": replace(base, experimental=dp),
-            "causal": replace(base, causal=True), "causal dp": replace(base, causal=True, experimental=dp)}
+    return {"single": SequenceConfig(length=0), "offline": base, "causal": replace(base, causal=True)}
 
 
 def tab_quality(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
@@ -194,7 +191,7 @@ def tab_quality(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
 
 
 def tab_maps(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
-    ms = {k: v for k, v in methods().items() if k in ("single", "offline", "offline dp", "causal")}
+    ms = {k: v for k, v in methods().items() if k in ("single", "offline", "causal")}
     rows = []
     for rname, r in refs.items():
         whiten(r, list(qs.values()))
@@ -268,42 +265,19 @@ def tab_sweep(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
     print(table(rows, ["exclude", *[f"{qn} {f}" for qn, f, _m in cases]]))
 
 
-def tab_design(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
-    """The choices inside the score (experimental SequenceConfig settings): which pairs a path is
-    scored on, how the sum is normalised, how many voted places compete for the best."""
-    from memlog.matching import Experimental, SequenceConfig
-
-    r = refs["base"]
-    rows = []
-    variants = [("all frames, mean (SeqSLAM)", "all", "mean", 3), ("all frames, sum/sqrt(n)", "all", "sqrt", 3),
-                ("mutual nearest, mean", "mutual", "mean", 3), ("mutual nearest, sum/sqrt(n) (default)", "mutual", "sqrt", 3),
-                ("default, 2 places compete", "mutual", "sqrt", 2), ("default, 6 places compete", "mutual", "sqrt", 6),
-                ("default, 12 places compete", "mutual", "sqrt", 12)]
-    for name, pairing, norm, places in variants:
-        cfg = SequenceConfig(experimental=Experimental(pairing=pairing, score_norm=norm, places=places))
-        cells = []
-        for qn in ("base", "mixed", "double-rate"):
-            for step in (1, 2, 4):
-                cells.append(f3(run(qs[qn], r, None if step == 1 else every(len(r), step), cfg)[0]))
-        rows.append([name, *cells])
-    print("\n### Score design: R@1 / AUC (offline, N = 10, K = 3), full / half / quarter map\n")
-    print(table(rows, ["score", *[f"{q} {m}" for q in ("base", "mixed", "double-rate") for m in ("full", "half", "quarter")]]))
-
-
 def tab_speed(qs: dict[str, Drive], refs: dict[str, Drive]) -> None:
-    from memlog.matching import Experimental, SequenceConfig
+    from memlog.matching import SequenceConfig
 
     r = refs["base"]
     rows = []
     for sp in ((1.0, 1.0), (0.5, 1.5), (0.0, 2.0), (0.0, 3.0), (0.0, 5.0)):
-        for path in ("constant", "dp"):
-            cells = []
-            for qn in ("base", "stops", "fast", "mixed", "half-rate", "double-rate"):
-                m, _res, dt = run(qs[qn], r, None, SequenceConfig(speeds=sp, experimental=Experimental(path=path)))
-                cells.append(f"{m['R@1']:.3f} ({dt * 1e3:.1f})")
-            rows.append([f"{sp[0]:g}..{sp[1]:g}", path, *cells])
-    print("\n### Speed range and path model: R@1 (ms per query, provisional), full map, offline\n")
-    print(table(rows, ["speeds", "path", "base", "stops", "fast", "mixed", "half-rate", "double-rate"]))
+        cells = []
+        for qn in ("base", "stops", "fast", "mixed", "half-rate", "double-rate"):
+            m, _res, dt = run(qs[qn], r, None, SequenceConfig(speeds=sp))
+            cells.append(f"{m['R@1']:.3f} ({dt * 1e3:.1f})")
+        rows.append([f"{sp[0]:g}..{sp[1]:g}", *cells])
+    print("\n### Speed range: R@1 (ms per query, provisional), full map, offline\n")
+    print(table(rows, ["speeds", "base", "stops", "fast", "mixed", "half-rate", "double-rate"]))
 
 
 def synthetic_map(r: Drive, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -362,7 +336,7 @@ def tab_size(qs: dict[str, Drive], refs: dict[str, Drive], sizes: list[int]) -> 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/memlog-seq-bench"))
-    ap.add_argument("--tables", nargs="+", default=["quality", "maps", "coords", "design", "sweep", "speed", "size"])
+    ap.add_argument("--tables", nargs="+", default=["quality", "maps", "coords", "sweep", "speed", "size"])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000])
     a = ap.parse_args()
     qs, refs = load(a.cache)
@@ -371,7 +345,6 @@ def main() -> int:
         "quality": lambda: tab_quality(qs, refs), "maps": lambda: tab_maps(qs, refs),
         "coords": lambda: tab_coords(qs, refs), "sweep": lambda: tab_sweep(qs, refs),
         "speed": lambda: tab_speed(qs, refs), "size": lambda: tab_size(qs, refs, a.sizes),
-        "design": lambda: tab_design(qs, refs),
     }
     for t in a.tables:
         tabs[t]()

@@ -122,18 +122,21 @@ def source_frames(fixture_script: ModuleType) -> list:
 
 
 @pytest.fixture(scope="session")
-def recorded_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The folder where the commands of :mod:`tests.recorded_outputs` ran once through the CLI (score,
-    map + localize of the Stromovka drive pair and of Nordland, evaluate of the drive pair): compared
-    with the recording by ``test_recorded_outputs``, and the drive pair's evaluation that
-    ``test_drive_pair`` checks against written maps (one run of the slowest command for both)."""
-    from tests.recorded_outputs import run_all
+def drive_pair_evaluation(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``memlog evaluate`` of the Stromovka drive pair (``--seeds 2 --no-report``), run once for the
+    session in its own process, as users run it, from a folder with ``-o evaluate``: that folder (the
+    paths ``evaluate/results.json`` records are relative to it). ``test_drive_pair`` checks it
+    against maps ``memlog map`` writes."""
+    import subprocess
+    import sys
 
-    for name in ("euroc_micro_foxglove.mcap", "stromovka_drive_autumn.mcap", "stromovka_drive_winter.mcap",
-                 "stromovka_drive_truth.json", "nordland_dev_summer.mcap", "nordland_dev_winter.mcap"):
-        shared(name)
-    out = tmp_path_factory.mktemp("recorded_run")
-    run_all(out, summary=False)
+    autumn, winter = shared("stromovka_drive_autumn.mcap"), shared("stromovka_drive_winter.mcap")
+    truth = shared("stromovka_drive_truth.json")
+    out = tmp_path_factory.mktemp("drive_pair_evaluation")
+    cmd = [sys.executable, "-m", "memlog", "-q", "evaluate", "--reference", str(autumn), "--query", str(winter),
+           "--truth", str(truth), "-o", "evaluate", "--seeds", "2", "--no-report"]
+    proc = subprocess.run(cmd, cwd=out, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True)
+    assert proc.returncode == 0, f"memlog evaluate: exit {proc.returncode}\n{proc.stderr[-3000:]}"
     return out
 
 

@@ -17,7 +17,7 @@ from memlog.cli.flags import GROUPS
 #: Every action of every subcommand as the parser built it before its flags were grouped (captured from
 #: that parser by a script): (command, option strings, dest, default, type, action, nargs, const,
 #: choices, required). Grouping changes where --help shows a flag, never this. Flags added since are
-#: added here with their command (--whiten-on: map, batch, evaluate).
+#: added here with their command.
 CONTRACT = {
     ('batch', ('--actors-per-gpu',), 'actors_per_gpu', None, 'positive_int', '_StoreAction', None, None, None, False),
     ('batch', ('--all-scores',), 'all_scores', None, None, '_StoreTrueAction', 0, True, None, False),
@@ -67,7 +67,6 @@ CONTRACT = {
     ('batch', ('--summary',), 'summary', None, None, '_StoreAction', None, None, None, False),
     ('batch', ('--threads',), 'threads', None, 'nonneg_int', '_StoreAction', None, None, None, False),
     ('batch', ('--whiten-dim',), 'whiten_dim', None, 'positive_int', '_StoreAction', None, None, None, False),
-    ('batch', ('--whiten-on',), 'whiten_on', None, None, '_StoreAction', None, None, ('kept', 'drive'), False),
     ('batch', ('--workers',), 'workers', None, 'positive_int', '_StoreAction', None, None, None, False),
     ('batch', ('-o', '--output'), 'output', None, None, '_StoreAction', None, None, None, True),
     ('batch', ('-q', '--quiet'), 'quiet', '==SUPPRESS==', None, '_StoreTrueAction', 0, True, None, False),
@@ -110,7 +109,6 @@ CONTRACT = {
     ('evaluate', ('--no-hmm',), 'no_hmm', False, None, '_StoreTrueAction', 0, True, None, False),
     ('evaluate', ('--no-ensemble',), 'no_ensemble', False, None, '_StoreTrueAction', 0, True, None, False),
     ('evaluate', ('--no-whiten',), 'no_whiten', False, None, '_StoreTrueAction', 0, True, None, False),
-    ('evaluate', ('--whiten-on',), 'whiten_on', None, None, '_StoreAction', None, None, ('kept', 'drive'), False),
     ('evaluate', ('--normalize',), 'normalize', None, None, '_StoreAction', None, None, ('all', 'static'), False),
     ('evaluate', ('--paper-discarded',), 'paper_discarded', None, None,
      '_StoreAction', None, None, ('false_negative', 'true_negative', 'uncovered_negative'), False),
@@ -126,8 +124,6 @@ CONTRACT = {
     ('evaluate', ('--select',), 'select', None, None, '_StoreAction', None, None, ('paper', 'segment'), False),
     ('evaluate', ('--sequence',), 'sequence', None, 'nonneg_int', '_StoreAction', None, None, None, False),
     ('evaluate', ('--sequence-k',), 'sequence_k', None, 'positive_int', '_StoreAction', None, None, None, False),
-    ('evaluate', ('--sequence-path',), 'sequence_path', None, None,
-     '_StoreAction', None, None, ('constant', 'dp'), False),
     ('evaluate', ('--spacing-m',), 'spacing_m', None, 'positive_float', '_StoreAction', None, None, None, False),
     ('evaluate', ('--spacing-s',), 'spacing_s', None, 'positive_float', '_StoreAction', None, None, None, False),
     ('evaluate', ('--spacing-view',), 'spacing_view', None, 'positive_float', '_StoreAction', None, None, None, False),
@@ -163,8 +159,6 @@ CONTRACT = {
     ('localize', ('--search',), 'search', 'auto', None, '_StoreAction', None, None, ('auto', 'exact', 'ivf'), False),
     ('localize', ('--sequence',), 'sequence', None, 'nonneg_int', '_StoreAction', None, None, None, False),
     ('localize', ('--sequence-k',), 'sequence_k', None, 'positive_int', '_StoreAction', None, None, None, False),
-    ('localize', ('--sequence-path',), 'sequence_path', None, None,
-     '_StoreAction', None, None, ('constant', 'dp'), False),
     ('localize', ('--speed-prior',), 'speed_prior', None, 'nonneg_float', '_StoreAction', None, None, None, False),
     ('localize', ('--speeds',), 'speeds', None, 'speed_range', '_StoreAction', None, None, None, False),
     ('localize', ('--start',), 'start', None, 'log_time', '_StoreAction', None, None, None, False),
@@ -219,7 +213,6 @@ CONTRACT = {
     ('map', ('--stride',), 'stride', None, 'positive_int', '_StoreAction', None, None, None, False),
     ('map', ('--threads',), 'threads', None, 'nonneg_int', '_StoreAction', None, None, None, False),
     ('map', ('--whiten-dim',), 'whiten_dim', None, 'positive_int', '_StoreAction', None, None, None, False),
-    ('map', ('--whiten-on',), 'whiten_on', None, None, '_StoreAction', None, None, ('kept', 'drive'), False),
     ('map', ('--workers',), 'workers', None, 'positive_int', '_StoreAction', None, None, None, False),
     ('map', ('-o', '--output'), 'output', None, None, '_StoreAction', None, None, None, True),
     ('map', ('-q', '--quiet'), 'quiet', '==SUPPRESS==', None, '_StoreTrueAction', 0, True, None, False),
@@ -343,9 +336,8 @@ EXPERIMENTAL = {
     "map": {"--dt", "--distinct-weight", "--paper-literal", "--normalize"},
     "batch": {"--dt", "--distinct-weight", "--paper-literal", "--normalize"},
     "score": {"--paper-literal", "--normalize"},
-    "localize": {"--sequence-path", "--time-search"},
-    "evaluate": {"--dt", "--distinct-weight", "--paper-literal", "--normalize", "--sequence-path",
-                 "--paper-discarded"},
+    "localize": {"--time-search"},
+    "evaluate": {"--dt", "--distinct-weight", "--paper-literal", "--normalize", "--paper-discarded"},
 }
 
 
@@ -403,7 +395,7 @@ def test_top_level_help_names_the_groups(capsys: pytest.CaptureFixture[str], mon
 #: the settings declared on these configs' fields, :mod:`memlog.settings`).
 def _configs() -> dict[str, list[type]]:
     from memlog.descriptors.approx import SearchConfig
-    from memlog.matching import Experimental, SequenceConfig
+    from memlog.matching import SequenceConfig
     from memlog.scoring.config import ScoreConfig
     from memlog.selection.config import SelectionConfig
     from memlog.steps.batch import BatchConfig
@@ -413,8 +405,8 @@ def _configs() -> dict[str, list[type]]:
 
     return {"score": [ScoreConfig], "map": [ScoreConfig, SelectionConfig, MapConfig],
             "batch": [ScoreConfig, SelectionConfig, BatchConfig, MapConfig],  # batch's --workers: BatchConfig's
-            "localize": [LocalizeConfig, SearchConfig, SequenceConfig, Experimental],
-            "evaluate": [ScoreConfig, SelectionConfig, EvaluateConfig, SequenceConfig, Experimental]}
+            "localize": [LocalizeConfig, SearchConfig, SequenceConfig],
+            "evaluate": [ScoreConfig, SelectionConfig, EvaluateConfig, SequenceConfig]}
 
 
 #: Each command's flags that are not settings of a config: what is read and written, the config file and
@@ -475,8 +467,8 @@ def test_the_flags_copy_into_the_configs() -> None:
     local = batch_config(parser.parse_args(["batch", "a.mcap", "-o", "out", "--ray"]))
     assert (local.ray, local.ray_address) == (True, None)
     s = sequence_config(parser.parse_args(["localize", "m.parquet", "q.mcap", "-o", "x.parquet", "--keep-stops",
-                                           "--no-hmm", "--sequence-path", "dp", "--speeds", "0.5:2"]))
-    assert (s.stops, s.hmm, s.rerank, s.experimental.path, s.speeds) == (False, False, True, "dp", (0.5, 2.0))
+                                           "--no-hmm", "--speeds", "0.5:2"]))
+    assert (s.stops, s.hmm, s.rerank, s.speeds) == (False, False, True, (0.5, 2.0))
     e = evaluate_config(parser.parse_args(["evaluate", "--reference", "r.mcap", "--query", "q.mcap", "-o", "o",
                                            "--tolerance", "10", "--no-report", "--sequence", "5"]))
     assert (e.tol_m, e.report, e.sequence.length, e.whiten) == (10.0, False, 5, True)

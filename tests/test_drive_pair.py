@@ -7,10 +7,10 @@ What is checked against independent expectations:
   ``memlog localize`` matches the winter drive against each; R@1 and the AUC-PR are computed here
   from the match tables and the truth file (R@1 by hand, the AUC by memlog's PR curve on those
   hand-counted hits);
-- ``memlog evaluate`` on the same pair reports, for its full and memorable rows, maps of exactly
-  the frames those two maps keep, with the same R@1 and AUC;
-- its every-k-th baseline is a map on disk, written by the same writer, of evenly spaced frames,
-  whose metadata says the frames were given, and which ``memlog localize`` reads.
+- ``memlog evaluate`` on the same pair reports, for its memorable row, a map of exactly the frames
+  the default map keeps, with the same R@1 and AUC (a map is a mask of the drive's one table);
+- its every-k-th baseline, written as a map of its frames by the same writer and localized through
+  the CLI, gives the row's R@1; its start offsets are every one up to the spacing.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def _scores(matches: Path, truth: list[list[int]]) -> tuple[float, float]:
 
 
 @pytest.fixture(scope="module")
-def drive_pair(tmp_path_factory: pytest.TempPathFactory, recorded_run: Path,
+def drive_pair(tmp_path_factory: pytest.TempPathFactory, drive_pair_evaluation: Path,
                drive_pair_maps: dict[str, tuple[Path, Path]]) -> dict[str, Any]:
     d = tmp_path_factory.mktemp("drive_pair")
     autumn, winter = shared("stromovka_drive_autumn.mcap"), shared("stromovka_drive_winter.mcap")
@@ -50,27 +50,34 @@ def drive_pair(tmp_path_factory: pytest.TempPathFactory, recorded_run: Path,
     for name, (parquet, matches) in drive_pair_maps.items():  # `memlog map` (full, default), then `localize`
         out[name] = (parquet, _scores(matches, truth))
     # `memlog evaluate --reference AUTUMN --query WINTER --truth TRUTH -o OUT --seeds 2 --no-report`, run once
-    # for the session by the recorded_run fixture (tests/recorded_outputs.py COMMANDS["evaluate"])
-    ev = recorded_run / "evaluate"
+    # for the session by the drive_pair_evaluation fixture (tests/conftest.py)
+    ev = drive_pair_evaluation / "evaluate"
     out["results"] = json.loads((ev / "results.json").read_text())
     out["eval"] = ev
-    out["ran_in"] = recorded_run
+    out["ran_in"] = drive_pair_evaluation
     return out
 
 
-@pytest.mark.parametrize("row, written", [("full", "full"), ("memorable", "default")])
-def test_evaluate_rows_are_the_maps_memlog_map_writes(drive_pair: dict[str, Any], row: str, written: str) -> None:
-    res = drive_pair["results"][row]
-    parquet, (r1, auc) = drive_pair[written]
+def test_the_memorable_row_is_the_map_memlog_map_writes(drive_pair: dict[str, Any]) -> None:
+    """evaluate matches the memorable map as a mask of the drive's one described table; `memlog map`
+    writes that map (its whitening fitted on the drive), and `memlog localize` against it gives exactly
+    the row's R@1 and AUC, computed here from the match table."""
+    res = drive_pair["results"]["memorable"]
+    parquet, (r1, auc) = drive_pair["default"]
     kept = sorted(pq.read_table(parquet).to_pydict()["frame_index"])
     assert res["frames"] == len(kept)
-    if row == "memorable":
-        assert sorted(res["kept_indices"]) == kept
-    else:  # the full map is written beside the results, and keeps what `memlog map --keep-fraction 1` keeps
-        written = drive_pair["ran_in"] / res["map"]  # (evaluate ran with -o evaluate: paths relative to its folder)
-        assert sorted(pq.read_table(written.with_suffix(".parquet")).to_pydict()["frame_index"]) == kept
+    assert sorted(res["kept_indices"]) == kept
     assert res["recall@1"] == pytest.approx(r1, abs=1e-9)
     assert res["auc"] == pytest.approx(auc, abs=1e-9)
+
+
+def test_the_full_row_is_every_place_of_the_drive_once(drive_pair: dict[str, Any]) -> None:
+    """The full map is every frame of the drive with a stop's frames once: as many frames as the
+    drive has runs of frames at one place (the truth's reference places), give or take a stop whose
+    frames are told apart by noise."""
+    places = json.loads(drive_pair["truth_file"].read_text())["reference_places"]
+    runs = 1 + sum(a != b for a, b in zip(places, places[1:]))
+    assert abs(drive_pair["results"]["full"]["frames"] - runs) <= 2
 
 
 def test_the_full_map_leaves_the_stops_out(drive_pair: dict[str, Any]) -> None:
@@ -84,34 +91,40 @@ def test_the_full_map_leaves_the_stops_out(drive_pair: dict[str, Any]) -> None:
     assert set(at) >= {p for p in places if places.count(p) == 1}  # every place driven through once is kept
 
 
-def test_every_kth_baseline_is_a_written_map(drive_pair: dict[str, Any], tmp_path: Path) -> None:
+def test_every_kth_baseline_is_its_written_map(drive_pair: dict[str, Any], tmp_path: Path) -> None:
+    """Each baseline is a mask over the drive's described table; written as a map of those frames by
+    `memlog map`'s writer (one whitening per drive: the same transform as every other map of the drive)
+    and localized through the CLI, it gives the same R@1. The offsets are every k-th frame shifted 0, 1, ...
+    frames, as many as the spacing."""
     from mcap.reader import make_reader
 
-    res = drive_pair["results"]["uniform"]
-    m = drive_pair["ran_in"] / res["map"]
-    kept = pq.read_table(m.with_suffix(".parquet")).to_pydict()["frame_index"]
+    from memlog.steps.map import make_map
+
+    rows = drive_pair["results"]
+    ph = rows["uniform_phases"]
+    kept = sorted(ph["maps"][0]["kept_indices"])
     n = len(json.loads(drive_pair["truth_file"].read_text())["reference_places"])  # the drive's frames
-    assert len(kept) == res["frames"] == drive_pair["results"]["memorable"]["frames"]
-    steps = np.diff(sorted(kept))
+    assert len(kept) == rows["uniform"]["frames"] == rows["memorable"]["frames"]
+    steps = np.diff(kept)
     assert steps.max() - steps.min() <= 1 and steps.min() >= n // len(kept) - 1  # evenly spaced
+    # 84 of 139 frames is a spacing of 1.66: two offsets (the last frame wrapping to the first)
+    spacing = (n - 1) / (len(kept) - 1)
+    assert len(ph["maps"]) == int(np.ceil(spacing))
+    assert [sorted(p["kept_indices"]) for p in ph["maps"]] == [sorted((np.asarray(kept) + d) % n)
+                                                               for d in range(len(ph["maps"]))]
+    assert ph["recall@1"] == pytest.approx(np.mean([p["recall@1"] for p in ph["maps"]]))
+    m = tmp_path / "uniform.mcap"
+    make_map(drive_pair["autumn"], m, keep_frames={"/camera/image_raw/compressed": kept})
     with open(m, "rb") as f:
         rec = next(x.metadata for x in make_reader(f).iter_metadata() if x.name == "memlog_map")
     assert rec["kept_by"] == "given"
-    # and it is a map localize reads, checked against its own log
     assert main(["-q", "localize", str(m.with_suffix(".parquet")), str(drive_pair["winter"]), "-o",
                  str(tmp_path / "u.parquet"), "--map", str(m)]) == 0
     r1, _auc = _scores(tmp_path / "u.parquet", drive_pair["truth"])
-    assert r1 == pytest.approx(res["recall@1"], abs=1e-9)
-    # every k-th frame from its start offsets: 84 of 139 frames is a spacing of 1.66, so two offsets (shifted
-    # 0 and 1 frame, the last frame wrapping to the first); the first is the map above, the row their mean
-    ph = drive_pair["results"]["uniform_phases"]
-    assert [sorted(p["kept_indices"]) for p in ph["phases"]] == [sorted((np.asarray(kept) + d) % n) for d in (0, 1)]
-    assert ph["phases"][0]["recall@1"] == pytest.approx(r1, abs=1e-9)
-    assert ph["recall@1"] == pytest.approx(np.mean([p["recall@1"] for p in ph["phases"]]))
-    # the random baselines and the shifted every-k-th maps were measured and not left behind
-    assert drive_pair["results"]["random"]["seeds"] == 2
-    assert not list((drive_pair["eval"] / "maps").glob("random-*"))
-    assert not list((drive_pair["eval"] / "maps").glob("every-kth-*"))
+    assert r1 == pytest.approx(rows["uniform"]["recall@1"], abs=1e-9)
+    assert ph["maps"][0]["recall@1"] == pytest.approx(r1, abs=1e-9)
+    assert rows["random"]["seeds"] == len(rows["random"]["maps"]) == 2
+    assert not (drive_pair["eval"] / "maps").exists()  # no map but the memorable one is written
 
 
 def _speed_error_near_stops(map_parquet: Path, matches: Path, truth: dict[str, Any], length: int = 10,

@@ -5,8 +5,8 @@ localize`` the winter log against the map it wrote (with ``--annotate`` and ``--
 
 What is checked against independent expectations:
 - the map's descriptor kind is the one a camera gets (DINOv2) and localize reads it back; the
-  whitening is fitted on the map's kept frames (this drive's quarter map keeps 25, under the 32 a
-  fit needs, so it is not whitened; its half map is, and localizes against it as well);
+  whitening is fitted on the drive's moving frames, one per drive (the quarter and default maps share
+  it; a drive of 26 frames, under the 32 a fit needs, is not whitened; the half map localizes);
 - R@1 computed here from the match table and the truth file (not by memlog's metrics) equals the
   memorable map's R@1 that ``evaluate`` reports: one matcher, run on the map's Parquet as written;
 - the annotated query log opens with the mcap library and with rosbags, and its match channel
@@ -67,9 +67,10 @@ def test_map_then_localize_runs_at_camera_resolution(stromovka: dict[str, Path])
     info = next(iter(json.loads(str(rec["selection"])).values()))["info"]
     assert info["spacing_view"] == 0.5 and len(m) == info["n_segments"] == math.ceil(info["view_change"] / 0.5 - 1e-9)
     assert len(m) >= 95
-    # the whitening is fitted on the kept frames (half as many dimensions), and the map says so
-    assert m.whitening is not None and m.whitening.n_fit == len(m) and m.whitening.dim_out == len(m) // 2
-    assert rec["whitening"]["n_fit"] == len(m) and meta.whitening == m.whitening.sha256
+    # the whitening is fitted on the drive's moving frames (Stromovka: 101 places, no stop: every frame;
+    # half as many dimensions), whatever the map keeps, and the map says so
+    assert m.whitening is not None and m.whitening.n_fit == 101 and m.whitening.dim_out == 101 // 2
+    assert rec["whitening"]["n_fit"] == 101 and meta.whitening == m.whitening.sha256
     # the map stores the re-rank's patch features, projected by a PCA fitted on its own frames
     assert m.patches is not None and m.patch_pca is not None and m.patches.shape == (len(m), 64, m.patch_pca.dim)
     rows = pq.read_table(stromovka["matches"]).to_pydict()
@@ -141,20 +142,26 @@ def test_the_annotated_query_log_opens_in_mcap_and_rosbags(stromovka: dict[str, 
     assert counts["/camera/image_raw/compressed"] == 101 and counts[topic] == 101
 
 
-def test_a_map_too_small_to_whiten_says_so(stromovka: dict[str, Path], tmp_path: Path) -> None:
-    """A quarter of Stromovka (25 frames) is under the 32 a whitening fit needs: the map is not
-    whitened, says so, and localize matches it once (nothing to average)."""
+def test_a_drive_too_short_to_whiten_says_so(stromovka: dict[str, Path], tmp_path: Path) -> None:
+    """Every 4th frame of Stromovka (26 frames) is under the 32 frames a whitening fit needs:
+    the map is not whitened, says so, and localize matches it once (nothing to average). A quarter
+    map of the whole drive (25 frames) is whitened: by the drive's transform, the full map's."""
     from memlog.outputs.descriptor_table import read_descriptors
 
     small = tmp_path / "q.mcap"
-    assert main(["-q", "map", str(stromovka["autumn"]), "-o", str(small), "--keep-fraction", "0.25"]) == 0
+    assert main(["-q", "map", str(stromovka["autumn"]), "-o", str(small), "--stride", "4", "--keep-fraction", "1"]) == 0
     m = read_descriptors(small.with_suffix(".parquet"))
-    assert len(m) == 25 and m.whitening is None and not m.meta.whitening
-    assert _map_record(small)["whitening"] == {"skipped": "fewer than 32 kept frames described; not whitened"}
+    assert len(m) == 26 and m.whitening is None and not m.meta.whitening
+    assert _map_record(small)["whitening"] == {"skipped": "fewer than 32 frames of the drive; not whitened"}
     assert main(["-q", "localize", str(small.with_suffix(".parquet")), str(stromovka["winter"]), "-o",
-                 str(tmp_path / "x.parquet")]) == 0
+                 str(tmp_path / "x.parquet"), "--stride", "4"]) == 0
     seq = json.loads(pq.read_table(tmp_path / "x.parquet").schema.metadata[b"memlog.sequence"])
     assert seq["ensemble"] == {"off": "the map is not whitened"}
+    quarter = tmp_path / "quarter.mcap"
+    assert main(["-q", "map", str(stromovka["autumn"]), "-o", str(quarter), "--keep-fraction", "0.25"]) == 0
+    qm, full = read_descriptors(quarter.with_suffix(".parquet")), read_descriptors(stromovka["map"].with_suffix(".parquet"))
+    assert len(qm) == 25 and qm.whitening is not None and full.whitening is not None
+    assert qm.whitening.sha256 == full.whitening.sha256 and qm.patch_pca.sha256 == full.patch_pca.sha256
 
 
 def test_localize_refuses_the_parquet_of_another_map(stromovka: dict[str, Path], tmp_path: Path) -> None:
@@ -226,16 +233,16 @@ def test_every_descriptor_kind_is_rebuilt_from_what_its_map_records(kind: str) -
 
 
 def test_a_whitened_map_localizes(stromovka: dict[str, Path]) -> None:
-    """The half map keeps 51 frames: whitened, fitted on exactly those frames (DINOv2 describes no
-    other frame of the drive), and the winter drive localizes against it through the CLI; R@1 from
-    the match table and the truth file (measured 0.871 with the defaults)."""
+    """The half map keeps 51 frames, whitened by the drive's transform (fitted on its 101 moving
+    frames: each described, the kept ones stored), and the winter drive localizes against it through
+    the CLI; R@1 from the match table and the truth file (measured 0.871 with the defaults)."""
     from memlog.outputs.descriptor_table import read_descriptors
 
     d = stromovka["dir"]
     assert main(["-q", "map", str(stromovka["autumn"]), "-o", str(d / "half.mcap"), "--keep-fraction", "0.5"]) == 0
     m = read_descriptors(d / "half.parquet")
     white = _map_record(d / "half.mcap")["whitening"]
-    assert isinstance(white, dict) and white["n_fit"] == len(m) == 51 and white["dim_out"] == 25
+    assert isinstance(white, dict) and white["n_fit"] == 101 and len(m) == 51 and white["dim_out"] == 50
     assert m.whitening is not None and m.meta.whitening == m.whitening.sha256 == white["sha256"]
     assert main(["-q", "localize", str(d / "half.parquet"), str(stromovka["winter"]), "-o", str(d / "h.parquet"),
                  "--map", str(d / "half.mcap")]) == 0

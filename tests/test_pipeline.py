@@ -148,31 +148,46 @@ def test_evaluate_end_to_end(all_scored: Path, tmp_path: Path) -> None:
         for key in ("frames", "coverage", "auc", "recall@1", "recall@5", "recall@10", "match_seconds_per_query"):
             assert key in saved[name], (name, key)
         assert "auc" in saved[name]["paper_protocol"] and "recall@1" in saved[name]["paper_protocol"]
-    # the full map is the map `memlog map --keep-fraction 1` writes (the demo's stops left out, one view
-    # each): its frames are found, as the same images, and only those (exact truth: coverage = its share)
-    full_kept = pq.read_table(Path(saved["full"]["map"]).with_suffix(".parquet")).to_pydict()["frame_index"]
-    assert saved["full"]["frames"] == len(full_kept) and 0 < len(full_kept) <= 8
-    assert saved["full"]["coverage"] == pytest.approx(len(full_kept) / 8)
-    assert saved["full"]["recall@1"] == pytest.approx(len(full_kept) / 8)  # same images
+    # the full map holds every frame of the drive, a stop's frames once (its first: the moving index
+    # steps there): its frames are found, as the same images, and only those (exact truth: coverage = its share)
+    moving = pq.read_table(next(out.glob("reference.*.parquet"))).to_pydict()["moving_index"]
+    n_full = len(set(moving))
+    assert saved["full"]["frames"] == n_full and 0 < n_full <= 8
+    assert saved["full"]["coverage"] == pytest.approx(n_full / 8)
+    assert saved["full"]["recall@1"] == pytest.approx(n_full / 8)  # same images
     k = saved["memorable"]["frames"]
     assert saved["uniform"]["frames"] == saved["random"]["frames"] == k
     assert saved["memorable"]["coverage"] == pytest.approx(k / 8)  # exact truth: coverage = kept share
     assert saved["memorable"]["recall@1"] == pytest.approx(k / 8)  # a kept place is always found
     assert set(saved["memorable"]["thresholds"]) == {"mt", "st", "et"}
     assert "std" in saved["random"] and saved["random"]["seeds"] == 5
-    # every k-th frame from its start offsets: the every-k-th map's frames shifted 0, 1, 2 ... frames along
-    # the drive (wrapping past the last of the 8), each map of k frames and, under exact truth, R@1 k/8
+    # every k-th frame from each start offset: evenly spaced frames shifted 0, 1, 2 ... frames along the
+    # drive (wrapping past the last of the 8), as many offsets as the spacing, each map of k frames and,
+    # under exact truth, R@1 k/8; the spread's mean, std, min and max are those of the maps
     ph = saved["uniform_phases"]
-    first = sorted(pq.read_table(Path(saved["uniform"]["map"]).with_suffix(".parquet")).to_pydict()["frame_index"])
-    assert len(ph["phases"]) >= 2
-    for d, p in enumerate(ph["phases"]):
+    first = sorted(ph["maps"][0]["kept_indices"])
+    assert len(first) == k and len(ph["maps"]) == int(np.ceil(7 / (k - 1) - 1e-9))
+    for d, p in enumerate(ph["maps"]):
         assert sorted(p["kept_indices"]) == sorted((i + d) % 8 for i in first)
         assert p["recall@1"] == pytest.approx(k / 8)
-    assert ph["phases"][0]["recall@1"] == saved["uniform"]["recall@1"]
-    assert ph["recall@1"] == pytest.approx(np.mean([p["recall@1"] for p in ph["phases"]]))
+    assert ph["maps"][0]["recall@1"] == saved["uniform"]["recall@1"]
+    for name in ("uniform_phases", "random"):
+        vals = [p["recall@1"] for p in saved[name]["maps"]]
+        assert saved[name]["recall@1"] == pytest.approx(np.mean(vals))
+        assert saved[name]["std"]["recall@1"] == pytest.approx(np.std(vals))
+        assert (saved[name]["min"]["recall@1"], saved[name]["max"]["recall@1"]) == (min(vals), max(vals))
+        among = saved["memorable"]["among"][name]
+        assert among["below"] == pytest.approx(np.mean([v < saved["memorable"]["recall@1"] - 1e-12 for v in vals]))
+        assert among["below"] + among["tied"] + among["above"] == pytest.approx(1.0)
     assert [r["threshold"] for r in saved["sweeps"]["mt"]] == [round(0.1 * i, 1) for i in range(11)]
     assert saved["sweeps"]["st"][0]["frames"] == 8
-    assert (out / "report.html").read_text().count("<svg") >= 6
+    report = (out / "report.html").read_text()
+    assert report.count("<svg") >= 7
+    # the spread drawn: one dot per baseline map, the memorable map's line and where it lies among them
+    spread = report[report.index(f"R@1 of maps of {k} frames"):]
+    spread = spread[: spread.index("</svg>")]
+    assert spread.count("<circle") == len(saved["uniform_phases"]["maps"]) + len(saved["random"]["maps"])
+    assert f"memorable {saved['memorable']['recall@1']:.3f}" in spread
     assert (out / "map.mcap").is_file() and (out / "map.parquet").is_file()
     assert res["memorable"]["frames"] == k
 

@@ -657,10 +657,12 @@ def test_every_kth_from_its_start_offsets() -> None:
     # a spacing of 2.25 (5 of 10): three offsets, shifted 0, 1 and 2 frames (rint of 0, 0.75, 1.5)
     assert [np.flatnonzero(r).tolist() for r in phase_masks(10, 5)] == [[0, 2, 4, 7, 9], [0, 1, 3, 5, 8],
                                                                         [1, 2, 4, 6, 9]]
-    # every 5.2th of 100 (spacing 99/19): shifts of 0, 1, 3 and 4 frames (rint of j * 5.21 / 4), a row
-    # shifted past frame 99 wrapping to the first frames
+    # every 5.2th of 100 (spacing 99/19): every offset, shifts of 0 .. 5 frames (rint of j * 5.21 / 6);
+    # four of them asked for: 0, 1, 3 and 4 (rint of j * 5.21 / 4); a row shifted past frame 99 wraps
     base = uniform_indices(100, 20)
-    m = phase_masks(100, 20)
+    assert [np.flatnonzero(r).tolist() for r in phase_masks(100, 20)] == [
+        sorted(int(v) for v in (base + d) % 100) for d in range(6)]
+    m = phase_masks(100, 20, phases=4)
     want = [sorted(int(v) for v in (base + d) % 100) for d in (0, 1, 3, 4)]
     assert [np.flatnonzero(r).tolist() for r in m] == want
     assert (m.sum(axis=1) == 20).all()

@@ -13,7 +13,6 @@ import pytest
 from memlog.descriptors.base import DescriptorMeta
 from memlog.matching import (
     STAT_SAMPLE,
-    Experimental,
     SequenceConfig,
     drive_runs,
     match_sequences,
@@ -70,12 +69,12 @@ def test_stops_and_a_fast_stretch_localize(places: np.ndarray) -> None:
     frames = (np.arange(len(path)) - np.cumsum(standing)).astype(np.float64)
     single = _share_within(_single_best(q, ref), path, 1)
     assert single < 0.6  # the task is hard frame by frame (measured 0.48)
-    for cfg in (SequenceConfig(), SequenceConfig(causal=True), SequenceConfig(experimental=Experimental(path="dp"))):
+    for cfg in (SequenceConfig(), SequenceConfig(causal=True)):
         res = match_sequences(q, frames, ref, np.arange(N_PLACES, dtype=np.float64), cfg, k=3, standing=standing)
         assert res.sequence.all() if not cfg.causal else res.sequence[cfg.length:].all()
-        # causal windows straddle each change of speed for up to N frames: measured 0.94 / 0.96 (dp)
+        # causal windows straddle each change of speed for up to N frames
         got = _share_within(res.indices[res.sequence, 0], path[res.sequence], 1)
-        assert got >= (0.9 if cfg.causal else 0.95), (cfg.experimental.path, cfg.causal, got)
+        assert got >= (0.9 if cfg.causal else 0.95), (cfg.causal, got)
         stop = slice(70 if cfg.causal else 60, 90)  # standing still at place 60 (causal: once N frames in)
         assert _share_within(res.indices[stop, 0], path[stop], 1) == 1.0
         ranks = res.indices[:, :3]
@@ -168,15 +167,14 @@ def test_the_fallback_message_counts_the_standing_frames_it_covers(places: np.nd
     assert f"{n_single} frame(s): fewer frames of its run before it" in res.info["fallback"]
 
 
-@pytest.mark.parametrize("path_model", ["constant", "dp"])
-def test_results_do_not_depend_on_blocking(places: np.ndarray, path_model: str) -> None:
+def test_results_do_not_depend_on_blocking(places: np.ndarray) -> None:
     path = _path()
     ref = _unit(places)
     q = _query(places, path)
     frames = np.arange(len(path), dtype=np.float64)
     rc = np.arange(N_PLACES, dtype=np.float64)
     runs = (np.arange(len(path)) >= 100).astype(np.int64)  # two runs: windows stop at the boundary
-    results = [match_sequences(q, frames, ref, rc, SequenceConfig(block=b, experimental=Experimental(path=path_model)), k=4, runs=runs)
+    results = [match_sequences(q, frames, ref, rc, SequenceConfig(block=b), k=4, runs=runs)
                for b in (1, 7, 64, 10_000)]
     for r in results[1:]:
         for name in ("indices", "scores", "similarities", "margin", "speed", "window", "sequence"):
@@ -334,23 +332,11 @@ def test_two_topics_never_mix(places: np.ndarray) -> None:
     ({"speeds": (-1.0, 2.0)}, "0 <= min <= max"),
     ({"candidates": 0}, "candidates must be an integer >= 1"),
     ({"coordinate": "metres"}, "coordinate must be one of"),
-    ({"experimental": "dp"}, "experimental must be an Experimental"),
     ({"max_gap_s": 0}, "max_gap_s must be a number > 0"),
 ])
 def test_bad_settings_are_config_errors(kw: dict, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
         SequenceConfig(**kw)
-
-
-@pytest.mark.parametrize("kw, message", [
-    ({"path": "spline"}, "path must be one of"),
-    ({"places": 0}, "places must be an integer >= 1"),
-    ({"pairing": "some"}, "pairing must be one of"),
-    ({"normalize": 1}, "normalize must be true or false"),
-])
-def test_bad_experimental_settings_are_config_errors(kw: dict, message: str) -> None:
-    with pytest.raises(ConfigError, match=message):
-        Experimental(**kw)
 
 
 def _moving(path: np.ndarray) -> np.ndarray:

@@ -480,37 +480,33 @@ def add_localize(sub: Any) -> None:
 
 def add_sequence_flags(groups: FlagGroups) -> None:
     """How a query drive is matched as sequences (``localize``, ``evaluate``)."""
-    from memlog.matching import Experimental, SequenceConfig
+    from memlog.matching import SequenceConfig
 
     add_setting_flags(groups, SequenceConfig)
-    add_setting_flags(groups, Experimental)
 
 
 def sequence_config(args: argparse.Namespace) -> Any:
     """The SequenceConfig of the localize flags; flags that need a sequence with ``--sequence 0``
     are a usage error."""
-    from memlog.matching import Experimental, SequenceConfig
+    from memlog.matching import SequenceConfig
     from memlog.settings import setting_flags
 
     values = setting_values(args, SequenceConfig)
-    experimental = setting_values(args, Experimental)
-    shaping = [flag.name for cls, given in ((SequenceConfig, values), (Experimental, experimental))
-               for name, flag in setting_flags(cls) if name in given and name not in ("length", "rerank", "hmm", "ensemble")]
+    shaping = [flag.name for name, flag in setting_flags(SequenceConfig)
+               if name in values and name not in ("length", "rerank", "hmm", "ensemble")]
     if values.get("length") == 0 and shaping:
         raise ConfigError(f"{', '.join(shaping)} set(s) how sequences are matched, but --sequence 0 matches single "
                           "frames")
     try:
-        if experimental:
-            values["experimental"] = Experimental(**experimental)
         return SequenceConfig(**values)
     except ConfigError as exc:
         raise ConfigError(f"--sequence: {exc}") from None
 
 
 def _sequence_given(args: argparse.Namespace) -> bool:
-    from memlog.matching import Experimental, SequenceConfig
+    from memlog.matching import SequenceConfig
 
-    return bool(setting_values(args, SequenceConfig) or setting_values(args, Experimental))
+    return bool(setting_values(args, SequenceConfig))
 
 
 def cmd_localize(args: argparse.Namespace) -> int:
@@ -618,6 +614,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                          f"{r['match_seconds_per_query'] * 1e3:.3f}"])
     print(table(rows, ["descriptor", "whitening", "map", "frames", "coverage", "AUC", "R@1", "R@5", "R@1 single",
                        "paper AUC", "paper R@1", "ms/query"]))
+    mem = res["memorable"]
+    for name, label in (("uniform_phases", "every k-th frame, each start offset"), ("random", "random frames")):
+        r, among = res.results.get(name), mem.get("among", {}).get(name)
+        if r and "min" in r and among:
+            info(f"{label}: R@1 {r['recall@1']:.3f} ± {r['std']['recall@1']:.3f} "
+                 f"[{r['min']['recall@1']:.3f}, {r['max']['recall@1']:.3f}] over {len(r['maps'])} maps of "
+                 f"{r['frames']} frames; the memorable map ({mem['recall@1']:.3f}) is above {100 * among['below']:.0f} % "
+                 f"of them, below {100 * among['above']:.0f} %")
     m = res.results.get("matching", {})
     info(f"matched as {m.get('matching', 'single frame')}" + (
         f" ({m['sequence']['length']} frames {'before' if m['sequence']['causal'] else 'before and after'}, "

@@ -162,7 +162,7 @@ def _flag_names() -> dict[str, str]:
     """Setting name -> the flag that sets it, over every config the CLI builds (a name two configs give
     different flags is left out: ambiguous), and the phrases selection errors use."""
     from memlog.descriptors.approx import SearchConfig
-    from memlog.matching import Experimental, SequenceConfig
+    from memlog.matching import SequenceConfig
     from memlog.steps.batch import BatchConfig
     from memlog.steps.evaluate import EvaluateConfig
     from memlog.steps.localize import LocalizeConfig
@@ -170,7 +170,7 @@ def _flag_names() -> dict[str, str]:
 
     names: dict[str, set[str]] = {}
     for cls in (ScoreConfig, SelectionConfig, MapConfig, EvaluateConfig, LocalizeConfig, SearchConfig, SequenceConfig,
-                Experimental, BatchConfig):
+                BatchConfig):
         for name, flag in setting_flags(cls):
             if flag.action != "store_const":
                 names.setdefault(name, set()).add(flag.name)

@@ -19,7 +19,7 @@ from memlog.descriptors.base import Describer
 from memlog.descriptors.patches import PatchPCA, PatchPCAFitter, PatchStore
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import WhitenedDescriber, Whitening, WhiteningFitter
-from memlog.errors import DescriptorError, ImageDecodeError
+from memlog.errors import ImageDecodeError
 from memlog.io.base import FrameWindow, LogReader
 from memlog.io.frame import Frame
 from memlog.io.identity import log_identity
@@ -201,21 +201,21 @@ def describe_log(
 class ReferenceDescribing:
     """Describes reference frames in batches while a map is written (bounded memory).
 
-    ``add(frame, keep)``: with ``fit_whitening``, the whitening is fitted on the kept frames
-    (``fit_on="kept"``: frames that are not kept are not described at all) or on every frame added
-    (``fit_on="drive"``: the transform is learned from the whole drive); only kept frames'
-    descriptors are stored (frames without their pixels). ``whitening``: a transform
-    fitted beforehand (e.g. with the distinctiveness pass) to apply instead of fitting one;
-    ``known``: raw descriptors already computed, by ``(topic, frame index)``, used instead of
-    describing again (``known_patches``: their raw pooled patch features). :meth:`result`
-    returns the kept frames, their (whitened) descriptors and the transform (None without
-    whitening). When the describer gives patch features (``patches``), the kept frames' are kept
-    aside (:class:`~memlog.descriptors.patches.PatchStore`) and :meth:`patch_result` gives them
-    projected by a PCA fitted on them.
+    ``add(frame, keep)``: kept frames are described and stored (frames without their pixels); with
+    ``fit_whitening``, the whitening and the patch PCA are fitted on the frames of ``fit_frames``
+    (topic -> frame indices: the drive's moving frames, so every map of one drive shares one
+    transform), each described once if it is not kept (its descriptor is not stored), or on the kept
+    frames when ``fit_frames`` is None. ``whitening``: a transform fitted beforehand (e.g. with the
+    distinctiveness pass) to apply instead of fitting one; ``known``: raw descriptors already
+    computed, by ``(topic, frame index)``, used instead of describing again (``known_patches``: their
+    raw pooled patch features). :meth:`result` returns the kept frames, their (whitened) descriptors
+    and the transform (None without whitening). When the describer gives patch features
+    (``patches``), the kept frames' are kept aside (:class:`~memlog.descriptors.patches.PatchStore`)
+    and :meth:`patch_result` gives them projected by the PCA.
     """
 
     def __init__(self, describer: Describer, reader: LogReader, *, fit_whitening: bool = False,
-                 fit_on: str = "kept",
+                 fit_frames: Mapping[str, set[int]] | None = None,
                  whiten_dim: int | None = None, whitening: Whitening | None = None,
                  known: Mapping[tuple[str, int], np.ndarray] | None = None,
                  known_patches: Mapping[tuple[str, int], np.ndarray] | None = None,
@@ -223,10 +223,8 @@ class ReferenceDescribing:
         self.describer, self.reader, self.batch = describer, reader, batch
         self.whitening = whitening
         self.whiten_dim = whiten_dim
-        if fit_on not in ("kept", "drive"):
-            raise DescriptorError(f"fit_on must be kept or drive, got {fit_on!r}")
         self.fitter = WhiteningFitter(describer.dim) if fit_whitening and whitening is None else None
-        self.fit_all = fit_on == "drive"
+        self.fit_frames = fit_frames
         self.known = known or {}
         self.known_patches = known_patches or {}
         self.patches = patches and describer.gives_patches
@@ -234,19 +232,21 @@ class ReferenceDescribing:
         self.patch_fitter: PatchPCAFitter | None = None
         self.frames: list[Frame] = []
         self.rows: list[np.ndarray] = []
-        self._pending: list[tuple[Frame, Any, bool]] = []
+        self._pending: list[tuple[Frame, Any, bool, bool]] = []
 
-    @property
-    def wants_all_frames(self) -> bool:
-        """Whether frames that are not kept must be added too (to fit the whitening on the drive)."""
-        return self.fitter is not None and self.fit_all
+    def fits_on(self, topic: str, index: int) -> bool:
+        """Whether frame ``index`` of ``topic`` is one the whitening and the patch PCA are fitted on."""
+        if self.fit_frames is None:
+            return False
+        return index in self.fit_frames.get(topic, ())
 
     def add(self, frame: Frame, keep: bool) -> None:
-        if not keep and not self.wants_all_frames:
+        fit = self.fits_on(frame.topic, frame.index)
+        if not keep and not fit:
             return
         key = (frame.topic, frame.index)
         row = self.known.get(key)
-        if row is not None and keep and self.patches and key not in self.known_patches:
+        if row is not None and self.patches and key not in self.known_patches:
             row = None  # its patches are not known: describe it
         if row is None:
             try:
@@ -255,39 +255,43 @@ class ReferenceDescribing:
                 if keep:  # a frame that is not kept was reported by the scoring pass already
                     self.reader.decode_error(frame, exc)
                 return
-        self._pending.append((frame.stripped() if keep else frame, row if row is not None else img, keep))
+        self._pending.append((frame.stripped() if keep else frame, row if row is not None else img, keep, fit))
         if len(self._pending) >= self.batch:
             self.flush()
 
     def flush(self) -> None:
         if not self._pending:
             return
-        todo = [k for k, (_, v, _) in enumerate(self._pending) if v.ndim != 1]
+        todo = [k for k, p in enumerate(self._pending) if p[1].ndim != 1]
         desc = np.zeros((len(self._pending), self.describer.dim), np.float32)
         pooled: dict[int, np.ndarray] = {}
         if todo:
             imgs = [self._pending[k][1] for k in todo]
-            want = self.patches and any(self._pending[k][2] for k in todo)
-            d, p = self.describer.describe_patches(imgs) if want else (self.describer.describe(imgs), None)
+            d, p = self.describer.describe_patches(imgs) if self.patches else (self.describer.describe(imgs), None)
             desc[todo] = d
             if p is not None:
                 pooled.update(zip(todo, p))
-        for k, (f, v, kp) in enumerate(self._pending):
+        for k, (f, v, _kp, _fit) in enumerate(self._pending):
             if v.ndim == 1:
                 desc[k] = v
-                if kp and self.patches:
+                if self.patches:
                     pooled[k] = self.known_patches[(f.topic, f.index)]
+        keep = np.array([p[2] for p in self._pending], dtype=bool)
+        fit = keep if self.fit_frames is None else np.array([p[3] for p in self._pending], dtype=bool)
         if self.fitter is not None:
-            self.fitter.add(desc)
-        keep = np.array([kp for _, _, kp in self._pending], dtype=bool)
+            self.fitter.add(desc[fit])
         self.rows.append(desc[keep])
-        if self.store is not None and keep.any():
-            kept = np.stack([pooled[int(k)] for k in np.flatnonzero(keep)]).astype(np.float16)  # as stored
-            if self.patch_fitter is None:
-                self.patch_fitter = PatchPCAFitter(int(kept.shape[-1]))
-            self.patch_fitter.add(kept)
-            self.store.add(kept)
-        self.frames.extend(f for f, _, kp in self._pending if kp)
+        if self.store is not None:
+            # patches as stored (float16): the PCA is fitted on what it projects
+            as_stored = {k: v.astype(np.float16) for k, v in pooled.items()}
+            if fit.any():
+                fitted = np.stack([as_stored[int(k)] for k in np.flatnonzero(fit)])
+                if self.patch_fitter is None:
+                    self.patch_fitter = PatchPCAFitter(int(fitted.shape[-1]))
+                self.patch_fitter.add(fitted)
+            if keep.any():
+                self.store.add(np.stack([as_stored[int(k)] for k in np.flatnonzero(keep)]))
+        self.frames.extend(p[0] for p in self._pending if p[2])
         self._pending.clear()
 
     def result(self, source: str = "") -> tuple[list[Frame], np.ndarray, Whitening | None]:
@@ -300,8 +304,8 @@ class ReferenceDescribing:
         return self.frames, desc, self.whitening
 
     def patch_result(self) -> tuple[np.ndarray | None, PatchPCA | None]:
-        """The kept frames' patch features projected by a PCA fitted on them, and the PCA;
-        (None, None) when the describer gives none or fewer than two patches were kept."""
+        """The kept frames' patch features projected by the PCA fitted on the fit frames (module
+        doc), and the PCA; (None, None) when the describer gives none or fewer than two patches were fitted."""
         self.flush()
         pca = self.patch_fitter.fit() if self.patch_fitter is not None else None
         if self.store is None or pca is None:

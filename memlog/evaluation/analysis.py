@@ -15,7 +15,7 @@ from memlog.evaluation.metrics import Discarded, ProtocolResult, evaluate_map_on
 from memlog.selection import ScoreTable
 from memlog.selection.paper import first_failing
 
-__all__ = ["SWEEP_STEPS", "CRITERIA", "MAP_ROWS", "sweeps", "contribution", "mean_std", "position_truth", "local_positions"]
+__all__ = ["SWEEP_STEPS", "CRITERIA", "MAP_ROWS", "sweeps", "contribution", "mean_std", "among", "position_truth", "local_positions"]
 
 SWEEP_STEPS = tuple(round(0.1 * i, 1) for i in range(11))
 CRITERIA = {1: "staticity", 2: "entropy", 3: "memorability"}
@@ -64,7 +64,9 @@ def local_positions(t: DescriptorTable) -> np.ndarray | None:
 
 
 def mean_std(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    def agg(key_path: tuple[str, ...]) -> tuple[float, float]:
+    """The maps ``rows`` (results of one kind of baseline) as one row: the mean of each figure, and
+    its ``std``, ``min`` and ``max`` over the maps (the paper protocol's mean and std)."""
+    def agg(key_path: tuple[str, ...]) -> tuple[float, float, float, float]:
         vals = []
         for r in rows:
             v: Any = r
@@ -72,9 +74,9 @@ def mean_std(rows: list[dict[str, Any]]) -> dict[str, Any]:
                 v = v[k]
             vals.append(np.nan if v is None else float(v))
         a = np.asarray(vals)
-        return float(np.nanmean(a)), float(np.nanstd(a))
+        return float(np.nanmean(a)), float(np.nanstd(a)), float(np.nanmin(a)), float(np.nanmax(a))
 
-    out: dict[str, Any] = {"frames": rows[0]["frames"], "seeds": len(rows), "std": {}}
+    out: dict[str, Any] = {"frames": rows[0]["frames"], "seeds": len(rows), "std": {}, "min": {}, "max": {}}
     if "single_frame" in rows[0]:
         out["single_frame"] = mean_std([r["single_frame"] for r in rows])
     for key in ("coverage", "auc", "recall@1", "recall@5", "recall@10", "precision@100%recall",
@@ -82,15 +84,24 @@ def mean_std(rows: list[dict[str, Any]]) -> dict[str, Any]:
         if rows[0].get(key) is None:
             out[key] = None
             continue
-        out[key], out["std"][key] = agg((key,))
+        out[key], out["std"][key], out["min"][key], out["max"][key] = agg((key,))
     out["paper_protocol"] = {"std": {}}
     for key in ("auc", "recall@1", "recall@5", "recall@10", "coverage"):
         if rows[0]["paper_protocol"].get(key) is None:
             continue
-        m, s = agg(("paper_protocol", key))
+        m, s, _lo, _hi = agg(("paper_protocol", key))
         out["paper_protocol"][key] = m
         out["paper_protocol"]["std"][key] = s
     return out
+
+
+def among(memorable: dict[str, Any], maps: list[dict[str, Any]]) -> dict[str, float]:
+    """Where the memorable map lies among baseline ``maps`` of its size: the share of them whose
+    R@1 is below, equal to and above its own."""
+    mine = memorable["recall@1"]
+    vals = np.array([m["recall@1"] for m in maps], dtype=np.float64)
+    return {"below": float(np.mean(vals < mine - 1e-12)), "tied": float(np.mean(np.abs(vals - mine) <= 1e-12)),
+            "above": float(np.mean(vals > mine + 1e-12))}
 
 
 def sweeps(table: ScoreTable, matching: Matching, truth_rows: list[set[int]], k: int, paper_discarded: Discarded

@@ -19,6 +19,7 @@ import numpy as np
 from memlog.descriptors.patches import PatchPCA
 from memlog.descriptors.search import time_per_query
 from memlog.matching import SequenceConfig, SequenceMatch, match_tables
+from memlog.matching.rerank import PairScores
 from memlog.descriptors.table import DescriptorTable
 from memlog.descriptors.whitening import Whitening
 from memlog.evaluation.metrics import Discarded, ProtocolResult, evaluate_map_only, evaluate_paper
@@ -49,6 +50,7 @@ class Matching:
         self.info: dict[str, Any] = {"matching": "sequence" if self.sequence else "single frame"}
         self._full: dict[bool, tuple[np.ndarray, np.ndarray]] = {}
         self._rows = {int(f): r for r, f in enumerate(ref_t.frame_index)}
+        self._pairs: dict[str, PairScores] = {}  # patch pair scores, shared by every mask of the reference
 
     def _config(self, sequence: bool) -> SequenceConfig:
         return self.seq if sequence else replace(self.seq, length=0, causal=False)
@@ -77,7 +79,7 @@ class Matching:
             rows = np.array([self._rows.get(int(f), -1) for f in map_table.frame_index], dtype=np.int64)
             idx = np.where(sm.indices >= 0, rows[np.maximum(sm.indices, 0)], -1)
         else:
-            sm = match_tables(self.q_t, self.ref_t, self._config(seq), k=k, ref_mask=mask)
+            sm = match_tables(self.q_t, self.ref_t, self._config(seq), k=k, ref_mask=mask, pair_cache=self._pairs)
             idx = sm.indices
         if seq and (map_table is not None or mask is None):  # what the summary says: the full and memorable maps
             self._record(sm)
@@ -129,12 +131,15 @@ def truth_rows(truth_frames: list[set[int]], q: DescriptorTable, ref_rows: np.nd
     return out
 
 
-def whitened(table: DescriptorTable, whitening: Whitening | None, patch_pca: PatchPCA | None) -> DescriptorTable:
+def whitened(table: DescriptorTable, whitening: Whitening | None, patch_pca: PatchPCA | None, *,
+             reference: bool = False) -> DescriptorTable:
     """``table`` with its descriptors whitened by ``whitening`` and its patches projected by
     ``patch_pca`` (the map's: the space the map's Parquet is in, as ``localize`` puts a query
-    there); descriptors unchanged without a whitening."""
+    there); descriptors unchanged without a whitening. ``reference``: the table is the reference
+    drive, so it carries the whitening as a map does (the matcher's whitening ensemble reads it)."""
     table = table.projected(patch_pca)
     if whitening is None:
         return table
     meta = replace(table.meta, dim=whitening.dim_out, whitening=whitening.sha256)
-    return replace(table, descriptors=whitening.apply(table.descriptors), meta=meta, whitening=None)
+    return replace(table, descriptors=whitening.apply(table.descriptors), meta=meta,
+                   whitening=whitening if reference else None)

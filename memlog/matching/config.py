@@ -1,10 +1,9 @@
-"""The matcher's settings (:class:`SequenceConfig`, its :class:`Experimental` part), its constants, and
-its result (:class:`SequenceMatch`)."""
+"""The matcher's settings (:class:`SequenceConfig`), its constants, and its result (:class:`SequenceMatch`)."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -14,7 +13,7 @@ from memlog.configfile import check_ints
 from memlog.errors import ConfigError
 from memlog.settings import Flag, nonneg_float, nonneg_int, positive_float, positive_int, setting, speed_range
 
-__all__ = ["SequenceConfig", "Experimental", "SequenceMatch", "COORDINATES", "PATHS", "STAT_SAMPLE", "FALLBACK_REASONS",
+__all__ = ["SequenceConfig", "SequenceMatch", "COORDINATES", "STAT_SAMPLE", "FALLBACK_REASONS",
            "F32", "F64", "I64", "BoolArray"]
 
 F32 = npt.NDArray[np.float32]
@@ -25,7 +24,6 @@ BoolArray = npt.NDArray[np.bool_]
 
 
 COORDINATES = ("auto", "frames", "time", "positions")
-PATHS = ("constant", "dp")
 DEFAULT_SPEEDS = (1 / 3, 3.0)  # frames and time: a third to three times the map's speed (stops are left out)
 POSITION_SPEEDS = (0.8, 1.25)  # positions: metres against metres; the range allows for odometry scale
 VOTERS = 10  # candidates per query frame that vote (--sequence-k)
@@ -36,8 +34,6 @@ EXACT_PLACES = 3  # the best-voted places that compete for the best match (more:
 TOP_VOTES = 64  # best-voted places per query looked at by the non-maximum suppression
 CENTRE_STEPS = 2  # centres are tried every half reference frame (a map sparser than the query: between its frames)
 RESCORE_SPEEDS = 3  # exact scores are taken at the voted speed and this many steps either side
-PAIRINGS = ("mutual", "all")  # mutual: map frames along the path meet their nearest query frames; all: every frame
-SCORE_NORMS = ("sqrt", "mean")  # sqrt: sum of z over sqrt(pairs), N(0, 1) without a match; mean: the mean z
 VOTE_ELEMS = 1 << 21  # votes of one block of centres (memory bound whatever the window, candidates and speeds)
 SCORE_ELEMS = 1 << 20  # elements of one [B, P, D, S, W] block of exact scores (memory bound whatever the sparsity)
 PAIR_ELEMS = 1 << 21  # float32 elements per chunk of pair products (8 MiB)
@@ -56,37 +52,6 @@ FALLBACK_REASONS = {
 
 
 @dataclass(frozen=True)
-class Experimental:
-    """The matcher's settings for experiments and benchmarks (``benchmarks/sequence_table.py`` compares
-    them); the defaults are what was measured best, and ordinary runs leave them alone.
-
-    ``path``: ``constant`` (a straight line at the voted speed, default) or ``dp`` (a path whose speed
-    may change inside the window; ``--sequence-path dp``). ``pairing``: ``mutual`` (map frames along
-    the path meet their nearest query frames, default) or ``all``. ``score_norm``: ``sqrt`` (sum of z
-    over the square root of the pairs, default) or ``mean``. ``places``: the best-voted places scored
-    exactly (:data:`EXACT_PLACES`). ``normalize``: contrast normalisation of the similarities.
-    """
-
-    path: str = setting("constant", Flag(
-        ("--sequence-path",), "(experimental) constant speed over the window (default), or dp: a path whose speed "
-        "may change inside it", "experimental", choices=PATHS))
-    pairing: str = "mutual"
-    score_norm: str = "sqrt"
-    places: int = EXACT_PLACES
-    normalize: bool = True
-
-    def __post_init__(self) -> None:
-        check_ints(self, {"places": 1})
-        if self.pairing not in PAIRINGS or self.score_norm not in SCORE_NORMS:
-            raise ConfigError(f"pairing must be one of {', '.join(PAIRINGS)} and score_norm one of "
-                              f"{', '.join(SCORE_NORMS)}, got {self.pairing!r} and {self.score_norm!r}")
-        if self.path not in PATHS:
-            raise ConfigError(f"path must be one of {', '.join(PATHS)}, got {self.path!r}")
-        if not isinstance(self.normalize, bool):
-            raise ConfigError("normalize must be true or false")
-
-
-@dataclass(frozen=True)
 class SequenceConfig:
     """How query frames are matched as sequences (see the module doc).
 
@@ -95,11 +60,10 @@ class SequenceConfig:
     1/3..3 times the drives' pace for frames and time, 0.8..1.25 for positions); ``speed_step``
     (None: the step that moves the window's far end by one reference frame). ``candidates``: map
     frames per query frame from the single-frame search that vote. ``coordinate``: auto | frames | time |
-    positions. ``path``: constant | dp. ``max_gap_s``: a stamp gap above this cuts the query
+    positions. ``max_gap_s``: a stamp gap above this cuts the query
     into runs (None: :data:`GAP_FACTOR` times the median frame interval). ``exclude``:
     half-width, in reference frames, of the window around the best place inside which no
-    second-best place is taken (the margin's "different place"). ``normalize``: contrast
-    normalisation of the similarities. ``block``: query frames per block of votes, at most (fewer when a block's votes would pass
+    second-best place is taken (the margin's "different place"). ``block``: query frames per block of votes, at most (fewer when a block's votes would pass
     :data:`VOTE_ELEMS`; speed and
     memory only; never the result). ``scale_length``: on a sparse map (the kept frames' median
     spacing ``s`` reference frames, a half map ``s = 2``) the window is ``length * s`` frames
@@ -109,9 +73,7 @@ class SequenceConfig:
     ``stops``: in the ``frames`` coordinate, drives run along their moving index and a standing
     query frame takes its stop's match (the module doc's "Stops"). ``speed_prior``: a path's
     score loses this much per doubling (or halving) of its speed against 1, ``|log2 v|`` (0: every
-    speed in the range alike). Experimental settings (benchmarks compare them; the defaults are
-    what was measured best): ``pairing`` (``mutual`` | ``all``), ``score_norm`` (``sqrt`` |
-    ``mean``) and ``places`` (the best-voted places scored exactly). ``rerank``: re-rank each
+    speed in the range alike). ``rerank``: re-rank each
     query's best places by patch features when both tables carry them under one PCA
     (:func:`rerank_by_patches`; ``--no-rerank`` turns it off). ``hmm``: after the re-rank, decide
     each frame's place with its neighbours', as the drive's most likely path through every
@@ -169,12 +131,9 @@ class SequenceConfig:
         "than 1024 frames, the drive is re-ranked in the whitening's leading 100, 80, 60 and 40 %% of dimensions and "
         "the drive HMM decides between all their places, which steadies a whitening fitted on few frames)", "sequence matching",
         action="store_true", dest="no_ensemble", value=lambda v: False))
-    experimental: Experimental = setting(default_factory=lambda: Experimental())
 
     def __post_init__(self) -> None:
         check_ints(self, {"length": 0, "candidates": 1, "block": 1})
-        if not isinstance(self.experimental, Experimental):
-            raise ConfigError(f"experimental must be an Experimental, got {type(self.experimental).__name__}")
         if not isinstance(self.causal, bool):
             raise ConfigError("causal must be true or false")
         if self.coordinate not in COORDINATES:
@@ -215,15 +174,10 @@ class SequenceConfig:
         return POSITION_SPEEDS if coordinate == "positions" else DEFAULT_SPEEDS
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict: every setting at one level, the experimental ones among them (the form
-        outputs have recorded since before the :class:`Experimental` part existed)."""
-        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "experimental"}
+        """JSON-ready dict: every setting."""
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
         d["speeds"] = list(self.speeds) if self.speeds is not None else None
-        ex = asdict(self.experimental)
-        order = ("length", "causal", "speeds", "speed_step", "candidates", "coordinate", "path", "max_gap_s",
-                 "exclude", "normalize", "block", "scale_length", "stops", "speed_prior", "pairing", "score_norm",
-                 "places", "rerank", "hmm", "ensemble")
-        return {k: d[k] if k in d else ex[k] for k in order}
+        return d
 
 
 @dataclass

@@ -37,6 +37,7 @@ def match_tables(
     nprobe: int | None = None,
     rerank: int | None = None,
     ref_mask: npt.ArrayLike | None = None,
+    pair_cache: dict[str, PairScores] | None = None,
 ) -> SequenceMatch:
     """The drive matcher: :func:`match_sequences` for two descriptor tables (a query log and a
     map), what ``memlog localize``, ``memlog evaluate`` and the benchmarks all call. The
@@ -48,8 +49,8 @@ def match_tables(
     places along the speed that windows not crossing a stop of the query vote (a stop of
     :data:`SPEED_STOP` standing frames or more; the places themselves come from the whole windows):
     a window across a stop votes a blend of the speeds before and after it. ``ref_mask``: the map is
-    these rows of ``reference`` (returned rows are rows of the whole table). Results are in the
-    query table's row order."""
+    these rows of ``reference`` (returned rows are rows of the whole table). ``pair_cache``: kept across
+    calls on two tables (evaluate's masks), each patch pair scored once. Results in query row order."""
     cfg = config or SequenceConfig()
     coordinate, note = resolve_coordinate(cfg.coordinate, query, reference)
     stops = uses_stops(cfg, coordinate)
@@ -77,7 +78,8 @@ def match_tables(
     pairs, spacing = None, 0.0
     if why_not is None:  # the re-rank's pair scores (each computed once) and the HMM's map spacing
         assert query.patches is not None and reference.patches is not None and reference.patch_pca is not None
-        pairs = PairScores(query.patches[perm], reference.patches)
+        pairs = (pair_cache if pair_cache is not None else {}).setdefault(
+            "pairs", PairScores(query.patches[perm], reference.patches))
         spacing = _median_step(np.sort(rc[map_rows]))
 
     def run(qd: F32, rd: F32, hmm: bool = True) -> SequenceMatch:

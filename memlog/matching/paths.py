@@ -17,11 +17,11 @@ __all__: list[str] = []
 
 
 
-def _stats(q: F32, db: Database, normalize: bool) -> tuple[F64, F64]:
+def _stats(q: F32, db: Database) -> tuple[F64, F64]:
     """Mean and standard deviation of each query's similarities to a fixed sample of map rows
     (float64, one query at a time: no dependence on how many queries are given)."""
     n = q.shape[0]
-    if not normalize or db.rows.shape[0] < 2:
+    if db.rows.shape[0] < 2:
         return np.zeros(n), np.ones(n)
     sample = np.unique(np.linspace(0, db.rows.shape[0] - 1, min(STAT_SAMPLE, db.rows.shape[0])).astype(np.int64))
     s = db.rows[sample].astype(np.float64)
@@ -216,7 +216,7 @@ def _score_constant(p: _Problem, centres: I64, offs: I64, places: I64, vbest: I6
         rk = _nearest(p.rc, pred)
         tq = np.broadcast_to(t[:, None, None, None, :], rk.shape)
         inside = valid[:, None, None, None, :] & ok[:, :, None, None, None] & _on_map(p, pred)
-        use = inside & _closest_to_their_frame(p, pred, rk, inside) if p.cfg.experimental.pairing == "mutual" else inside
+        use = inside & _closest_to_their_frame(p, pred, rk, inside)
         z = np.zeros(rk.shape)
         z[use] = _z_of_pairs(p, tq[use], rk[use])
         total = np.zeros(rk.shape[:4])
@@ -224,7 +224,7 @@ def _score_constant(p: _Problem, centres: I64, offs: I64, places: I64, vbest: I6
         for o in range(rk.shape[4]):  # a fixed summation order
             total += z[..., o]
             count += use[..., o]
-        total /= np.sqrt(np.maximum(count, 1)) if p.cfg.experimental.score_norm == "sqrt" else np.maximum(count, 1)
+        total /= np.sqrt(np.maximum(count, 1))
         total -= penalty[:, :, None, :]
         flat = total.reshape(b, n_p, -1)
         arg = np.argmax(flat, axis=2)
@@ -235,53 +235,3 @@ def _score_constant(p: _Problem, centres: I64, offs: I64, places: I64, vbest: I6
         centre = np.where(better, np.take_along_axis(x, di[..., None], axis=2)[..., 0], centre)
         speed = np.where(better, np.take_along_axis(v, si[..., None], axis=2)[..., 0], speed)
     return np.where(ok, best, -np.inf), centre, speed
-
-
-def _dp_steps(d: F64, unit: float, vmin: float, vmax: float) -> tuple[I64, I64]:
-    """Grid steps allowed between consecutive window frames ``d`` apart in query coordinate."""
-    lo = np.round(vmin * np.abs(d) / unit).astype(np.int64)
-    hi = np.maximum(lo, np.round(vmax * np.abs(d) / unit).astype(np.int64))
-    return lo, hi
-
-
-def _score_dp(p: _Problem, i: int, offs: I64, places: I64) -> tuple[F64, F64, F64]:
-    """Exact DP-path scores of query ``i`` at the sorted map rows ``places``, with the best centre
-    (tried at :func:`_centre_offsets` around each) and the path's mean speed."""
-    t, d = _window(p, i, offs)
-    w = len(t)
-    dx = _centre_offsets(p)
-    x = (p.rc[places][:, None] + dx[None, :]).ravel()  # [P * D]
-    centre = int(np.flatnonzero(t == i)[0])
-    reach = float(np.max(np.abs(d))) * p.vmax if w > 1 else 0.0
-    g = math.ceil(reach / p.unit - 1e-9) + 1
-    grid = np.arange(-g, g + 1, dtype=np.float64) * p.unit
-    rk = _nearest(p.rc, x[:, None] + grid[None, :])  # [P, G]
-    emis = _z_of_pairs(p, np.broadcast_to(t[:, None, None], (w,) + rk.shape), np.broadcast_to(rk, (w,) + rk.shape))
-    emis = np.where(_on_map(p, x[:, None] + grid[None, :])[None], emis, 0.0)  # off the map: no evidence
-    n_g = rk.shape[1]
-    mid = n_g // 2
-    total = np.zeros(len(x))
-    ends = np.zeros((2, len(x)))
-    for side, seq in ((0, range(centre + 1, w)), (1, range(centre - 1, -1, -1))):
-        cur = np.full((len(x), n_g), -np.inf)
-        cur[:, mid] = 0.0
-        prev = centre
-        for o in seq:
-            lo, hi = _dp_steps(np.array([d[o] - d[prev]]), p.unit, p.vmin, p.vmax)
-            nxt = np.full_like(cur, -np.inf)
-            for s in range(int(lo[0]), min(int(hi[0]), n_g - 1) + 1):
-                if side == 0:
-                    nxt[:, s:] = np.maximum(nxt[:, s:], cur[:, : n_g - s])
-                else:
-                    nxt[:, : n_g - s] = np.maximum(nxt[:, : n_g - s], cur[:, s:])
-            cur = nxt + emis[o]
-            prev = o
-        arg = np.argmax(cur, axis=1)
-        total = total + cur[np.arange(len(x)), arg]
-        ends[side] = (arg - mid) * p.unit
-    score = ((total + emis[centre, :, mid]) / math.sqrt(w)).reshape(len(places), len(dx))
-    span = (d[-1] - d[0]) if w > 1 else 0.0
-    speed = ((ends[0] - ends[1]) / span if span > 0 else np.full(len(x), np.nan)).reshape(score.shape)
-    arg = np.argmax(score, axis=1)
-    rows = np.arange(len(places))
-    return score[rows, arg], x.reshape(score.shape)[rows, arg], speed[rows, arg]

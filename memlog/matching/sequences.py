@@ -11,8 +11,10 @@ import numpy.typing as npt
 
 from memlog.descriptors.search import Database, _as_2d, _rescore, _row_norms, match
 from memlog.errors import DescriptorError
-from memlog.matching.config import BoolArray, F32, F64, FALLBACK_REASONS, I64, MAX_LENGTH_SCALE, SequenceConfig, SequenceMatch, VOTE_ELEMS
-from memlog.matching.paths import _Problem, _offsets, _run_bounds, _score_constant, _score_dp, _speed_grid, _stats, _windows
+from memlog.matching.config import (
+    EXACT_PLACES, FALLBACK_REASONS, MAX_LENGTH_SCALE, VOTE_ELEMS, BoolArray, F32, F64, I64, SequenceConfig, SequenceMatch,
+)
+from memlog.matching.paths import _Problem, _offsets, _run_bounds, _score_constant, _speed_grid, _stats, _windows
 from memlog.matching.voting import _place, _votes, _with_end_votes
 
 if TYPE_CHECKING:
@@ -177,7 +179,7 @@ def _candidates(q: F32, db: Database, cfg: SequenceConfig, k: int, index: IVFInd
             ci, cs = match(q, db, k=n_cand)  # rows of the full reference
     else:
         ci, cs = np.full((n_q, n_cand), -1, np.int64), np.full((n_q, n_cand), -np.inf, np.float32)
-    mu, sd = _stats(q, db, cfg.experimental.normalize)
+    mu, sd = _stats(q, db)
     with np.errstate(invalid="ignore"):
         z = np.where(ci >= 0, (cs.astype(np.float64) - mu[:, None]) / sd[:, None], -np.inf)
     return ci, z, mu, sd
@@ -262,7 +264,7 @@ def _match_windows(p: _Problem, use: BoolArray, ci: I64, z: F64, m: _MapOrder, k
     floor = z[np.arange(n_q), np.clip(n_valid - 1, 0, cfg.candidates)]
     gain = np.where(ci[:, : cfg.candidates] >= 0, z[:, : cfg.candidates] - floor[:, None], 0.0)
     cand = cand[:, : cfg.candidates]
-    n_places = max(k, cfg.experimental.places)
+    n_places = max(k, EXACT_PLACES)
     centres_all = np.flatnonzero(use).astype(np.int64)
     # votes are [centres x window x candidates, speeds]: fewer centres a block when they are many
     block = max(1, min(cfg.block, VOTE_ELEMS // max(1, len(offs) * cfg.candidates * len(p.speeds))))
@@ -272,18 +274,12 @@ def _match_windows(p: _Problem, use: BoolArray, ci: I64, z: F64, m: _MapOrder, k
         sc = np.full(places.shape, -np.inf)
         xc = np.zeros(places.shape)
         sp = np.full(places.shape, np.nan)
-        if cfg.experimental.path == "constant":
-            # the centres with places proposed by their slid windows apart (the others' padding unscored)
-            more = (places[:, n_places:] >= 0).any(axis=1)
-            for rows, width in ((~more, n_places), (more, places.shape[1])):
-                if rows.any():
-                    sc[rows, :width], xc[rows, :width], sp[rows, :width] = _score_constant(
-                        p, centres[rows], offs, places[rows, :width], vbest[rows, :width])
-        else:
-            for j, i in enumerate(centres):
-                ok = places[j] >= 0
-                if ok.any():
-                    sc[j, ok], xc[j, ok], sp[j, ok] = _score_dp(p, int(i), offs, places[j, ok])
+        # the centres with places proposed by their slid windows apart (the others' padding unscored)
+        more = (places[:, n_places:] >= 0).any(axis=1)
+        for rows, width in ((~more, n_places), (more, places.shape[1])):
+            if rows.any():
+                sc[rows, :width], xc[rows, :width], sp[rows, :width] = _score_constant(
+                    p, centres[rows], offs, places[rows, :width], vbest[rows, :width])
         _, valid, _d = _windows(p, centres, offs)
         for j, i in enumerate(centres):
             _place(p, int(i), sc[j], xc[j], sp[j], int(valid[j].sum()), k, out.indices, out.scores, out.margin,

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from memlog.matching.config import BoolArray, F64, I64, TOP_VOTES
+from memlog.matching.config import EXACT_PLACES, TOP_VOTES, BoolArray, F64, I64
 from memlog.matching.coordinates import _nearest
 from memlog.matching.paths import _Problem, _on_map, window_rows
 
@@ -125,7 +125,7 @@ def _place(p: _Problem, i: int, sc: F64, xc: F64, sp: F64, w: int, k: int, indic
     good = np.flatnonzero(np.isfinite(sc))
     if not len(good):
         return
-    late = (good >= p.cfg.experimental.places).astype(np.int64)
+    late = (good >= EXACT_PLACES).astype(np.int64)
     order = good[np.lexsort((xc[good], -sc[good], late))]
     kept: list[int] = []
     rows: list[int] = []

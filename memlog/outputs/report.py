@@ -32,7 +32,7 @@ from memlog.evaluation.metrics import ProtocolResult
 from memlog.io.atomic import write_bytes_atomic
 from memlog.io.open import open_log
 from memlog.io.positions import geo_origin, geo_to_local
-from memlog.outputs.svg_charts import svg_histogram, svg_lines
+from memlog.outputs.svg_charts import svg_histogram, svg_lines, svg_spread
 from memlog.outputs.svg_charts import svg_timeline as svg_timeline
 from memlog.progress import warning
 from memlog.selection import ScoreTable, Selection
@@ -87,14 +87,28 @@ def _gallery(title: str, rows: list[int], table: ScoreTable, sel: Selection, thu
     return f"<h3>{html.escape(title)}</h3><div class='gallery'>{''.join(cells)}</div>"
 
 
-def _phases_text(results: dict[str, Any]) -> str:
-    """The sentence on every k-th frame's start offsets, when they were measured."""
-    ph = results.get("uniform_phases")
-    if not ph:
+def _spread_html(results: dict[str, Any]) -> str:
+    """The maps of the memorable map's size, every k-th from each start offset and random, as dots,
+    the memorable and the full map as lines, and where the memorable one lies among them."""
+    rows = [(f"{label} ({len(results[name]['maps'])})", [m["recall@1"] for m in results[name]["maps"]])
+            for name, label in (("uniform_phases", "every k-th, each offset"), ("random", "random"))
+            if results.get(name, {}).get("maps")]
+    if not rows:
         return ""
-    each = ", ".join(f"{p['recall@1']:.3f}" for p in ph["phases"])
-    return (f"; every k-th, its start offsets: mean ± std over {len(ph['phases'])} maps of every k-th frame "
-            f"shifted along the drive (R@1 {html.escape(each)}, the first is every k-th)")
+    mem = results["memorable"]
+    marks = [("memorable", float(mem["recall@1"]), "#d62728")]
+    if "full" in results:
+        marks.append(("full", float(results["full"]["recall@1"]), "#222"))
+    among = mem.get("among", {})
+    text = "; ".join(f"{label}: {100 * a['below']:.0f} % below it, {100 * a['above']:.0f} % above"
+                     for name, label in (("uniform_phases", "every k-th maps"), ("random", "random maps"))
+                     for a in [among.get(name)] if a)
+    spread = "; ".join(f"{label} R@1 {r['recall@1']:.3f} ± {r['std']['recall@1']:.3f} "
+                       f"[{r['min']['recall@1']:.3f}, {r['max']['recall@1']:.3f}]"
+                       for name, label in (("uniform_phases", "every k-th"), ("random", "random"))
+                       for r in [results.get(name)] if r and "min" in r)
+    return (svg_spread(rows, marks, title=f"R@1 of maps of {mem['frames']} frames") +
+            f"<p class='note'>{html.escape(spread)}. The memorable map among them: {html.escape(text)}.</p>")
 
 
 def _table_html(results: dict[str, Any]) -> str:
@@ -569,7 +583,8 @@ justify-content:center;color:#666}} .note{{color:#555;font-size:13px}}</style></
 <p>Matched as {html.escape(how)} (details under <a href="#settings-section">settings</a>); the single-frame columns
 match the same maps frame by frame. Map-only: only map frames are searched. Paper protocol: the full reference
 database is searched and a query whose best match was discarded reports no match. Random: mean ± std over
-{results['random']['seeds']} seeds{_phases_text(results)}.</p>
+{results['random']['seeds']} seeds; every k-th, its start offsets: mean ± std over the maps of every k-th frame
+from each start offset.</p>{_spread_html(results)}
 <h2 id="where">Where localization fails</h2>{where}
 <h2 id="pr">Precision-recall</h2>{''.join(pr)}
 <h2 id="sweeps">Threshold sweeps</h2>{''.join(sweeps)}

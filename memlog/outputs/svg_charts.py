@@ -1,5 +1,5 @@
 """Small self-contained SVG charts for the HTML report (:mod:`memlog.outputs.report`): line charts,
-histograms and the drive's score timeline."""
+histograms, the drive's score timeline and the spread of maps of one size."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 
 from memlog.selection import ScoreTable, Selection
 
-__all__ = ["svg_lines", "svg_histogram", "svg_timeline"]
+__all__ = ["svg_lines", "svg_histogram", "svg_timeline", "svg_spread"]
 
 _COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"]
 
@@ -94,3 +94,35 @@ def svg_timeline(table: ScoreTable, sel: Selection, w: int = 900, h: int = 240) 
     for i in table.index[sel.keep]:
         extra.append(f'<line x1="{sx(i):.1f}" y1="{h - pad_b}" x2="{sx(i):.1f}" y2="{h - pad_b - 8}" stroke="#000"/>')
     return svg.replace("</svg>", "".join(extra) + "</svg>")
+
+
+def svg_spread(rows: Sequence[tuple[str, Sequence[float]]], marks: Sequence[tuple[str, float, str]], *,
+               title: str, w: int = 700) -> str:
+    """Where maps of one size fall: each row a label and its maps' values (dots), each mark a
+    labelled value drawn across every row (the memorable map, the full map) in its colour."""
+    vals = [v for _, vs in rows for v in vs if np.isfinite(v)] + [v for _, v, _ in marks if np.isfinite(v)]
+    lo, hi = (min(vals), max(vals)) if vals else (0.0, 1.0)
+    lo, hi = max(0.0, lo - 0.02), min(1.0, hi + 0.02)
+    if hi <= lo:
+        lo, hi = max(0.0, lo - 0.05), min(1.0, hi + 0.05)
+    left, right, row_h, top = 170, 20, 26, 28
+    h = top + row_h * len(rows) + 34 + 12 * len(marks)
+    x = _scale(lo, hi, left, w - right)
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-size="12">',
+             f'<text x="{left}" y="16" font-weight="bold">{html.escape(title)}</text>']
+    for j, (label, vs) in enumerate(rows):
+        y = top + row_h * j + row_h / 2
+        parts.append(f'<text x="{left - 8}" y="{y + 4:.1f}" text-anchor="end">{html.escape(label)}</text>'
+                     f'<line x1="{left}" x2="{w - right}" y1="{y:.1f}" y2="{y:.1f}" stroke="#eee"/>')
+        parts += [f'<circle cx="{x(v):.1f}" cy="{y:.1f}" r="4" fill="#1f77b4" fill-opacity="0.6"/>'
+                  for v in vs if np.isfinite(v)]
+    bottom = top + row_h * len(rows)
+    for k, (label, v, colour) in enumerate(marks):
+        if np.isfinite(v):
+            parts.append(f'<line x1="{x(v):.1f}" x2="{x(v):.1f}" y1="{top}" y2="{bottom}" stroke="{colour}" '
+                         f'stroke-width="2"/><text x="{x(v) + 3:.1f}" y="{bottom + 14 + 12 * k}" fill="{colour}">'
+                         f'{html.escape(label)} {v:.3f}</text>')
+    for t in np.linspace(lo, hi, 5):
+        parts.append(f'<text x="{x(t):.1f}" y="{h - 2}" text-anchor="middle" fill="#666">{t:.2f}</text>')
+    parts.append("</svg>")
+    return "".join(parts)

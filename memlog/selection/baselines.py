@@ -3,10 +3,11 @@
 Uniform: the K row indices ``np.rint(np.linspace(0, N - 1, K))`` (round half to even),
 which include the first and, for K >= 2, the last frame; for K <= N consecutive
 linspace points are >= 1 apart, so the rounded indices are K distinct rows.
-Every k-th frame from other start offsets (:func:`phase_masks`): the uniform rows shifted by
-``rint(j * s / P)`` frames (``s = (N - 1) / (K - 1)`` the spacing, ``P = min(MAX_PHASES, ceil(s))``,
-``j = 0 .. P - 1``), a row shifted past the last frame wrapping to the first ones: shift 0 is the
-uniform baseline, and a map of every other frame has two phases (the even frames and the odd ones).
+Every k-th frame from other start offsets (:func:`phase_masks`): the uniform rows shifted by each of
+``0 .. ceil(s) - 1`` frames (``s = (N - 1) / (K - 1)`` the spacing; with ``P`` offsets asked for, by
+``rint(j * s / P)``, ``j = 0 .. P - 1``), a row shifted past the last frame wrapping to the first ones:
+shift 0 is the uniform baseline, and a map of every other frame has two phases (the even frames and the
+odd ones).
 One every-k-th map is one draw of where its frames fall, and which phase holds the one frame a stop
 needs can decide it.
 Random: ``np.random.default_rng(seed).choice(N, K, replace=False)``, sorted, so a seed
@@ -30,7 +31,6 @@ __all__ = [
     "uniform_indices",
     "uniform_mask",
     "phase_masks",
-    "MAX_PHASES",
     "random_indices",
     "random_mask",
     "random_masks",
@@ -67,21 +67,22 @@ def uniform_mask(n: int, k: int) -> NDArray[np.bool_]:
     return _mask(int(n), uniform_indices(n, k))
 
 
-MAX_PHASES = 4  # start offsets of every k-th frame measured at most (phase_masks)
 
 
-def phase_masks(n: int, k: int, phases: int = MAX_PHASES) -> NDArray[np.bool_]:
+def phase_masks(n: int, k: int, phases: int | None = None) -> NDArray[np.bool_]:
     """Every k-th frame from evenly spaced start offsets (module doc), bool ``[P', N]``: the
-    first is :func:`uniform_mask`, each has K rows, no two are the same (``P' <= phases``)."""
+    first is :func:`uniform_mask`, each has K rows, no two are the same (``P' <= phases``; None:
+    every offset, as many as the spacing)."""
     n, k = _check(n, k)
-    if isinstance(phases, bool) or not isinstance(phases, numbers.Integral) or phases < 1:
+    if phases is not None and (isinstance(phases, bool) or not isinstance(phases, numbers.Integral) or phases < 1):
         raise ConfigError(f"phases must be an integer >= 1, got {phases!r}")
     base = uniform_indices(n, k)
     if k < 2:  # (k == n: a spacing of 1, one offset below)
         return _mask(n, base)[None, :]
     s = (n - 1) / (k - 1)
-    p = min(int(phases), int(np.ceil(s - 1e-9)))
-    shifts = dict.fromkeys(int(np.rint(j * s / p)) for j in range(p))  # distinct, in order, 0 first
+    every = int(np.ceil(s - 1e-9))  # the offsets 0 .. every - 1 (each < s: the rows stay distinct)
+    p = every if phases is None else min(int(phases), every)
+    shifts = dict.fromkeys(int(np.rint(j * s / p)) if p < every else j for j in range(p))  # distinct, 0 first
     return np.stack([_mask(n, (base + d) % n) for d in shifts])  # (a shift < s < n: the rows stay distinct)
 
 

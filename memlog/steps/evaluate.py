@@ -4,15 +4,17 @@ Given a reference log, a query log and ground truth (a JSON ``matches`` file, or
 both logs with a distance tolerance), it scores the reference as ``memlog map`` does (staged: the
 detector and ResMem only where they can change the map, kept in OUT for a rerun:
 :mod:`memlog.steps.score_cache`; with ``compare_exact``, every score of every frame,
-``OUT/reference.scored.mcap``), describes both drives (``OUT/{reference,query}.<kind>.parquet``) and
-writes every map of the comparison with the map step's writer (:func:`~memlog.steps.map.make_map`,
-from the scores, looks, descriptors and patch features it already has): the memorable map
-(``OUT/map.mcap`` + ``OUT/map.parquet``, exactly the map ``memlog map`` writes with the same
-settings), the full map (``OUT/maps/full.mcap``: ``memlog map --keep-fraction 1``) and the baselines
-of the memorable map's size (every k-th frame ``uniform``, and from its other start offsets
-``uniform_phases``: :func:`~memlog.selection.phase_masks`; random frames, 20 seeds; the last two
-written, measured and removed). Each is read back from its Parquet and matched as ``memlog localize`` matches it, in
-its own descriptor space (:mod:`memlog.evaluation.matching`), under the map-only and the paper
+``OUT/reference.scored.mcap``), describes both drives once (``OUT/{reference,query}.<kind>.parquet``)
+and writes the memorable map with the map step's writer (:func:`~memlog.steps.map.make_map`, from the
+scores, looks, descriptors and patch features it already has: ``OUT/map.mcap`` + ``OUT/map.parquet``,
+exactly the map ``memlog map`` writes with the same settings). A map's whitening and patch PCA are
+the reference drive's (fitted on its moving frames), so a map of some of the drive's frames is those
+rows of the drive's one described table: the full map (every frame) and the baselines of the
+memorable map's size (every k-th frame ``uniform``, and from each of its start offsets
+``uniform_phases``: :func:`~memlog.selection.phase_masks`; random frames, ``seeds`` of them; each
+with mean, std, min and max, and where the memorable map lies among them) are masks over that
+table, matched as ``memlog localize`` matches a map of those frames (:mod:`memlog.evaluation.matching`),
+under the map-only and the paper
 protocol. It adds map size and matching time and, when every reference frame has every score
 (``compare_exact``), the paper's threshold sweeps and the criterion contribution
 (:mod:`memlog.evaluation.analysis`; otherwise each says why it is missing), and writes
@@ -24,18 +26,17 @@ modification time) with the same settings; the run says which it reused and whic
 Quick trials: ``window`` (start/end/stride, resolved per log) and ``max_frames`` restrict both
 drives to part of them (every map is made of the window's frames); ``descriptors`` evaluates several
 descriptors in one run (each drive is described once per descriptor and cached as
-``OUT/{reference,query}.<kind>.parquet``; the maps of each are ``OUT/map.<kind>.mcap`` and
-``OUT/maps/NAME.<kind>.mcap`` when there are several). With ``whiten`` (the default) every map is
-whitened by the transform fitted on its own kept frames (or the whole reference drive with
-``whiten_on="drive"``), as ``memlog map`` fits it, and the query with that map's transform; the
-unwhitened full map is reported beside it (``full_unwhitened``).
+``OUT/{reference,query}.<kind>.parquet``; the memorable map of each is ``OUT/map.<kind>.mcap`` when
+there are several). With ``whiten`` (the default) every map is whitened by the drive's transform and
+the query with it, as ``localize`` whitens it; the unwhitened full map is reported beside it
+(``full_unwhitened``).
 """
 
 from __future__ import annotations
 
 import os
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -47,10 +48,12 @@ from memlog.descriptors.auto import AUTO, resolve_descriptor
 from memlog.descriptors.base import Describer
 from memlog.descriptors.extract import describe_log
 from memlog.descriptors.registry import DESCRIBERS, make_describer
-from memlog.matching import SequenceConfig
+from memlog.matching import SequenceConfig, standing_rows
 from memlog.descriptors.table import DescriptorTable
 from memlog.errors import ConfigError, EvaluationError, MemlogError
-from memlog.evaluation.analysis import MAP_ROWS, SWEEP_STEPS, contribution, local_positions, mean_std, position_truth, sweeps
+from memlog.evaluation.analysis import (
+    MAP_ROWS, SWEEP_STEPS, among, contribution, local_positions, mean_std, position_truth, sweeps,
+)
 from memlog.evaluation.matching import Matching, rows_for, whitened
 from memlog.evaluation.matching import truth_rows as truth_as_rows
 from memlog.evaluation.metrics import PAPER_READINGS, ProtocolResult, parse_truth
@@ -68,7 +71,7 @@ from memlog.scoring.config import ScoreConfig
 from memlog.selection import distance_uniform_mask, phase_masks, random_masks
 from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.settings import Flag, count_or_all, nonneg_float, positive_int, setting
-from memlog.steps.map import Looks, MapConfig, MapResult, make_map, score_table, staged_stageable
+from memlog.steps.map import MapConfig, MapResult, make_map, score_table, staged_stageable
 from memlog.steps.score import score
 from memlog.steps.score_cache import cached_staged_scores
 
@@ -82,8 +85,7 @@ class EvaluateConfig:
 
     ``descriptor``: the VPR descriptor (``auto``: by frame size; several comma-separated names
     are evaluated one after the other, the first being the main result); ``whiten``: whiten
-    with the map's transform (``whiten_on``: fitted on the map's kept frames or the whole drive,
-    as ``memlog map --whiten-on``); ``window``/``max_frames``: evaluate on part of both drives (quick
+    with the drive's transform (fitted on its moving frames, as ``memlog map`` fits it); ``window``/``max_frames``: evaluate on part of both drives (quick
     trials; ``query_window``: the query's own time window when it differs, e.g. ``+S`` times
     resolved against each log); ``tol_m``: position truth tolerance (metres); ``k``:
     candidates per query; ``seeds``: random baselines; ``paper_discarded``: how the paper
@@ -103,9 +105,6 @@ class EvaluateConfig:
         "comma-separated (each described once and cached; one table)", "comparisons", metavar="KIND[,KIND...]"))
     whiten: bool = setting(True, Flag(("--no-whiten",), "evaluate unwhitened maps (default: whitened)",
                                       "comparisons", action="store_true", value=lambda v: False))
-    whiten_on: Literal["kept", "drive"] = setting("kept", Flag(
-        ("--whiten-on",), "frames the map's whitening is fitted on, as memlog map --whiten-on (default kept)",
-        "comparisons", choices=("kept", "drive")))
     window: FrameWindow = FrameWindow()
     query_window: FrameWindow | None = None
     max_frames: int | None = setting(None, Flag(("--max-frames",), "at most this many frames of each drive",
@@ -184,90 +183,6 @@ class EvaluateResult:
 def _matching(q_t: DescriptorTable, ref_t: DescriptorTable, cfg: EvaluateConfig) -> Matching:
     """How the query is matched and scored against a map in the space of ``q_t`` / ``ref_t``."""
     return Matching(q_t, ref_t, cfg.sequence, cfg.k, cfg.paper_discarded)
-
-
-class _MapWriter:
-    """The maps of one evaluation, each written by the map step's writer (:func:`make_map`) from
-    the reference log with the scores and the raw descriptors and patches ``evaluate`` already has
-    (nothing is scored or described again), read back from its Parquet and matched in its own
-    descriptor space. ``OUT/map.mcap`` is the memorable map; the others are ``OUT/maps/NAME.mcap``
-    (``temporary`` ones, the random maps, are removed by :meth:`clean` once measured)."""
-
-    def __init__(self, reference: str, out: Path, kind: str | None, topic: str, ref_t: DescriptorTable,
-                 scores: dict[str, list[dict[str, Any]]], looks: Looks | None, config: MapConfig,
-                 map_score: ScoreConfig, window: FrameWindow) -> None:
-        self.reference, self.out, self.kind, self.topic, self.ref_t = reference, out, kind, topic, ref_t
-        self.scores, self.looks, self.config = scores, looks, config
-        self.map_score, self.window = map_score, window
-        self.reports: list[ReadReport] = []
-        self.known = {(topic, int(i)): ref_t.descriptors[r] for r, i in enumerate(ref_t.frame_index)}
-        self.known_patches = None if ref_t.patches is None else {
-            (topic, int(i)): ref_t.patches[r] for r, i in enumerate(ref_t.frame_index)}
-        self._temporary: list[Path] = []
-        self._tables: dict[Path, DescriptorTable] = {}
-
-    def path(self, name: str) -> Path:
-        suffix = f".{self.kind}" if self.kind else ""
-        if name == "memorable":
-            return self.out / f"map{suffix}.mcap"
-        return self.out / "maps" / f"{name}{suffix}.mcap"
-
-    def write(self, name: str, *, select: SelectionConfig | None = None, keep: np.ndarray | None = None,
-              temporary: bool = False) -> MapResult:
-        """Write map ``name``: the selection's frames (``select``: other selection settings, scored
-        as ``memlog map`` with those settings scores the drive — the staged scores of one selection
-        do not serve another — and cached in OUT like the first), or the reference rows ``keep`` (a
-        mask over the described frames)."""
-        path = self.path(name)
-        path.parent.mkdir(exist_ok=True)
-        cfg, looks = self.config, self.looks
-        scores: dict[str, list[dict[str, Any]]] | None = self.scores
-        if select is not None:  # its own scoring, with the scoring settings `memlog map` would use
-            cfg = replace(self.config, select=select, score=self.map_score)
-            scores, looks = None, None
-            staged = replace(cfg, descriptor=None)
-            if staged_stageable(staged):
-                recs, looks, report = cached_staged_scores(self.out, f"reference.{name}", self.reference, staged,
-                                                           self.window)
-                scores = {self.topic: recs.get(self.topic, [])}
-                if report is not None:
-                    self.reports.append(report)
-        given = None if keep is None else {self.topic: [int(i) for i in self.ref_t.frame_index[keep]]}
-        res = make_map(self.reference, path, cfg, scores=scores, known_descriptors=self.known,
-                       known_patches=self.known_patches, keep_frames=given, known_looks=looks, window=self.window)
-        if temporary:
-            self._temporary += [path] + ([res.descriptors] if res.descriptors is not None else [])
-        return res
-
-    def table(self, res: MapResult) -> DescriptorTable:
-        """The map's descriptor table as read back from its Parquet (every map here is described)."""
-        if res.output not in self._tables:
-            assert res.descriptors is not None
-            self._tables[res.output] = read_descriptors(res.descriptors)
-        return self._tables[res.output]
-
-    def evaluate(self, res: MapResult, q_t: DescriptorTable, truth: list[set[int]], cfg: EvaluateConfig
-                 ) -> tuple[dict[str, Any], tuple[ProtocolResult, ProtocolResult]]:
-        """Both protocols for the written map ``res``, the query in the map's own space."""
-        t = self.table(res)
-        white = t.whitening if cfg.whiten else None
-        matching = _matching(whitened(q_t, white, t.patch_pca), whitened(self.ref_t, white, t.patch_pca), cfg)
-        r, mo, po = matching.evaluate(truth, np.isin(self.ref_t.frame_index, t.frame_index), map_table=t)
-        r["whitening"] = res.whitening
-        return r, (mo, po)
-
-    def measure_temporary(self, name: str, keep: np.ndarray, q_t: DescriptorTable, truth: list[set[int]],
-                          cfg: EvaluateConfig) -> dict[str, Any]:
-        """The results of the reference rows ``keep`` written as the temporary map ``name`` (a
-        baseline measured and then removed by :meth:`clean`)."""
-        return self.evaluate(self.write(name, keep=keep, temporary=True), q_t, truth, cfg)[0]
-
-    def clean(self) -> None:
-        """Remove the temporary maps."""
-        for p in self._temporary:
-            self._tables.pop(p, None)
-            Path(p).unlink(missing_ok=True)
-        self._temporary.clear()
 
 
 def _reuse_scores(path: Path, reference: str, cfg: ScoreConfig, topic: str | None,
@@ -499,11 +414,11 @@ def _truth_rows(run: _Run, ref_t: DescriptorTable, q_t: DescriptorTable) -> tupl
 
 def _evaluate_kind(run: _Run, choice: Any, describer: Describer, several: bool) -> tuple[dict[str, Any], tuple[Any, ...]]:
     """Every map of the comparison with one descriptor kind, and what the analyses of the main kind
-    need. The maps are written by the map step's writer (`make_map`), each with its own whitening
-    and patch PCA fitted on its own kept frames as `memlog map` fits them, read back from its
-    Parquet and matched as `memlog localize` matches it: the memorable map (exactly the frames
-    `memlog map` keeps), the full map (`memlog map --keep-fraction 1`), and the baselines of the
-    memorable map's size (every k-th frame, random frames) as maps of those frames."""
+    need. The memorable map is written by the map step's writer (`make_map`: exactly the map `memlog
+    map` writes) from the scores and descriptors evaluate already has; its whitening and patch PCA
+    are the reference drive's (fitted on its moving frames), so every other map of the drive (the
+    full map, every k-th frame from each start offset, random frames) is a mask over the drive's
+    one described table, matched as `memlog localize` matches a map of those frames."""
     cfg, kind, ref_topic = run.cfg, choice.chosen, run.ref_topic
     still = cfg.select.still_distance  # both drives' stops found as `memlog map` finds the map's
     # descriptors of every reference and query frame (unwhitened; cached per kind)
@@ -515,39 +430,43 @@ def _evaluate_kind(run: _Run, choice: Any, describer: Describer, several: bool) 
     truth_rows, truth_src = _truth_rows(run, ref_t, q_t)
     in_window = {ref_topic: [run.score_by_frame[ref_topic][int(i)] for i in ref_t.frame_index
                              if int(i) in run.score_by_frame[ref_topic]]}
-    maps = _MapWriter(run.reference, run.out, kind if several else None, ref_topic, ref_t, in_window, run.looks,
-                      MapConfig(score=run.score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=kind,
-                                whiten=cfg.whiten, whiten_on=cfg.whiten_on, candidates=cfg.candidates),
-                      cfg.score, run.ref_window)
-    map_res = maps.write("memorable")
-    run.looks = maps.looks = run.looks or map_res.looks
+    map_cfg = MapConfig(score=run.score_cfg, select=cfg.select, topics=(ref_topic,), descriptor=kind,
+                        whiten=cfg.whiten, candidates=cfg.candidates)
+    map_path = run.out / (f"map.{kind}.mcap" if several else "map.mcap")
+    map_res = make_map(run.reference, map_path, map_cfg, scores=in_window,
+                       known_descriptors={(ref_topic, int(i)): ref_t.descriptors[r] for r, i in enumerate(ref_t.frame_index)},
+                       known_patches=None if ref_t.patches is None else {
+                           (ref_topic, int(i)): ref_t.patches[r] for r, i in enumerate(ref_t.frame_index)},
+                       known_looks=run.looks, window=run.ref_window)
+    run.looks = run.looks or map_res.looks
     sel = map_res.selections[ref_topic]
-    map_table = maps.table(map_res)
+    assert map_res.descriptors is not None
+    map_table = read_descriptors(map_res.descriptors)
     whitening = map_table.whitening if cfg.whiten else None
-    # each map under both protocols, in its own descriptor space (the query whitened and its patches
-    # projected by that map's transforms, as localize does); frame by frame too
-    matching = _matching(whitened(q_t, whitening, map_table.patch_pca), whitened(ref_t, whitening,
-                                                                                 map_table.patch_pca), cfg)
+    # every map in the drive's one descriptor space (the query whitened and its patches projected by
+    # the drive's transforms, as localize does), under both protocols; frame by frame too
+    matching = _matching(whitened(q_t, whitening, map_table.patch_pca),
+                         whitened(ref_t, whitening, map_table.patch_pca, reference=True), cfg)
     res: dict[str, Any] = {"descriptor": choice.to_dict(), "describer": describer.meta().to_dict(),
                            "whitening": map_res.whitening, "matching": matching.info}
-    per_variant = _compare_maps(run, maps, map_res, map_table, matching, ref_t, q_t, truth_rows, res)
-    run.reports.extend(maps.reports)
+    per_variant = _compare_maps(run, map_res, map_table, matching, ref_t, q_t, truth_rows, res)
     table = score_table(in_window[ref_topic], ref_topic)
     return res, (choice, describer, ref_t, matching, truth_rows, table, sel, per_variant, map_res, truth_src)
 
 
-def _compare_maps(run: _Run, maps: _MapWriter, map_res: MapResult, map_table: DescriptorTable, matching: Matching,
+def _compare_maps(run: _Run, map_res: MapResult, map_table: DescriptorTable, matching: Matching,
                   ref_t: DescriptorTable, q_t: DescriptorTable, truth_rows: list[set[int]], res: dict[str, Any]
                   ) -> dict[str, tuple[ProtocolResult, ProtocolResult]]:
-    """The memorable map, the full map and the baselines of its size, each a written map, into
-    ``res``; the map-only and paper results of each by name."""
+    """The memorable map (as written), the full map and the baselines of its size (masks of the
+    drive's table) into ``res``; the map-only and paper results of each by name."""
     cfg, ref_topic = run.cfg, run.ref_topic
     sel = map_res.selections[ref_topic]
     mask = np.isin(ref_t.frame_index, sel.kept_indices)
     per_variant: dict[str, tuple[ProtocolResult, ProtocolResult]] = {}
     kk = int(mask.sum())
-    phases = phase_masks(len(ref_t), kk)  # every k-th frame from each start offset, the first "uniform" itself
-    given: dict[str, np.ndarray] = {"uniform": phases[0]}
+    phases = phase_masks(len(ref_t), kk)  # every k-th frame from every start offset
+    # the full map: every frame but a stop's later ones, the frames `memlog map --keep-fraction 1` keeps
+    given: dict[str, np.ndarray] = {"full": ~standing_rows(ref_t), "uniform": phases[0]}
     exact = None
     if (cfg.compare_exact and cfg.select.mode == "segment" and cfg.candidates != "all"
             and map_res.tables.get(ref_topic) is not None):
@@ -560,36 +479,28 @@ def _compare_maps(run: _Run, maps: _MapWriter, map_res: MapResult, map_table: De
             given["uniform_distance"] = by_distance
     r, mo, po = matching.evaluate(truth_rows, mask, map_table=map_table)
     res["memorable"], per_variant["memorable"] = r, (mo, po)
-    full_res = maps.write("full", select=replace(cfg.select, keep_fraction=1.0))
-    res["full"], per_variant["full"] = maps.evaluate(full_res, q_t, truth_rows, cfg)
-    res["full"]["map"] = str(full_res.output)
     for name, m in given.items():
-        res[name], per_variant[name] = maps.evaluate(maps.write(name, keep=m), q_t, truth_rows, cfg)
-        res[name]["map"] = str(maps.path(name))
-    full_t = maps.table(full_res)
-    if full_t.whitening is not None and cfg.whiten:  # the full map unwhitened: its frames, its own patch PCA
-        raw = _matching(q_t.projected(full_t.patch_pca), ref_t.projected(full_t.patch_pca), cfg)
-        res["full_unwhitened"] = raw.evaluate(truth_rows, np.isin(ref_t.frame_index, full_t.frame_index))[0]
+        res[name], mo, po = matching.evaluate(truth_rows, m)
+        per_variant[name] = (mo, po)
+    if map_table.whitening is not None and cfg.whiten:  # the full map unwhitened, the same patch PCA
+        raw = _matching(q_t.projected(map_table.patch_pca), ref_t.projected(map_table.patch_pca), cfg)
+        res["full_unwhitened"] = raw.evaluate(truth_rows, given["full"])[0]
     res["memorable"].update({"kept_indices": sel.kept_indices.tolist(), "thresholds": sel.thresholds,
                              "select": cfg.select.mode, "candidates": cfg.candidates,
                              "keep_fraction": cfg.select.keep_fraction, "gaps": len(sel.gaps),
                              "segments": sel.info.get("by"), "still_frames": sel.info.get("still_frames")})
     if exact is not None:
         res["memorable_exact"]["kept_indices"] = exact.kept_indices.tolist()
-    res["uniform"]["note"] = ("every k-th frame: evenly spaced frame indices, as many as the memorable map, "
-                              "written as a map of those frames")
-    if len(phases) > 1:  # every k-th frame from its other start offsets
-        each = [res["uniform"]] + [maps.measure_temporary(f"every-kth-{j}", m, q_t, truth_rows, cfg)
-                                   for j, m in enumerate(phases[1:], 1)]
-        res["uniform_phases"] = {**mean_std(each), "phases": [
-            {"kept_indices": ref_t.frame_index[m].tolist(), "recall@1": r["recall@1"], "auc": r["auc"]}
-            for m, r in zip(phases, each)], "note": (
-            f"every k-th frame from {len(phases)} start offsets (the first: every k-th above), mean and std: "
-            "one every-k-th map is one draw of where its frames fall")}
-    rand = [maps.measure_temporary(f"random-{seed}", m, q_t, truth_rows, cfg)
-            for seed, m in zip(range(cfg.seeds), random_masks(len(ref_t), kk, range(cfg.seeds)))]
-    maps.clean()
-    res["random"] = mean_std(rand)
+    res["uniform"]["note"] = "every k-th frame: evenly spaced frame indices, as many as the memorable map"
+    each = [res["uniform"]] + [matching.evaluate(truth_rows, m)[0] for m in phases[1:]]
+    res["uniform_phases"] = {**mean_std(each), "maps": [
+        {"kept_indices": ref_t.frame_index[m].tolist(), "recall@1": r["recall@1"], "auc": r["auc"]}
+        for m, r in zip(phases, each)], "note": (
+        f"every k-th frame from each of its {len(phases)} start offsets (the first: every k-th above): one "
+        "every-k-th map is one draw of where its frames fall")}
+    rand = [matching.evaluate(truth_rows, m)[0] for m in random_masks(len(ref_t), kk, range(cfg.seeds))]
+    res["random"] = {**mean_std(rand), "maps": [{"recall@1": r["recall@1"], "auc": r["auc"]} for r in rand]}
+    res["memorable"]["among"] = {name: among(res["memorable"], res[name]["maps"]) for name in ("uniform_phases", "random")}
     return per_variant
 
 

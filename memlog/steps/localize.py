@@ -252,7 +252,7 @@ def _sequence_record(found: dict[str, Any], cfg: SequenceConfig) -> dict[str, An
             "runs", "max_gap_s", "sequence_queries", "single_queries", "fallback", "fallback_reasons", "stops",
             "standing_rows", "rerank", "hmm", "ensemble")
     out = {"asked": cfg.to_dict(), "length": cfg.length, "mode": "causal" if cfg.causal else "offline",
-           "candidates": cfg.candidates, "path": cfg.experimental.path, **{k: found.get(k) for k in keys}}
+           "candidates": cfg.candidates, **{k: found.get(k) for k in keys}}
     if not cfg.enabled:
         out["mode"] = "single frames"
     return out

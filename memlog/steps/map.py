@@ -55,7 +55,7 @@ from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.selection.segment import SegmentConfig, cut_segments
 from memlog.selection.staged import MSState, StaticityMode, staticity_mode
 from memlog.steps import map_scoring
-from memlog.steps.map_log import Looks, MapPlan, MapResult, write_map_log
+from memlog.steps.map_log import Looks, MapPlan, MapResult, moving_frames, write_map_log
 from memlog.steps.map_scoring import (CheapFrame, Detected, DetectJob, DetectRule, SegmentJob, cheap_frames,
                                       choose_chunk, detect_chunk, detect_segments, staged_record)
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
@@ -82,10 +82,10 @@ class MapConfig:
     size, :mod:`memlog.descriptors.auto`; None: no descriptors); ``descriptors_path``: the Parquet
     file (default: the map path with ``.parquet``); ``descriptor_dtype``: how it stores them,
     float32 or float16 (half the size; read back as float32); ``whiten``: fit a PCA-whitening and
-    store it with the map (:mod:`memlog.descriptors.whitening`); ``whiten_on``: the frames it is
-    fitted on, ``"kept"`` (the map's own frames: only they are described, so the network runs on
-    the kept frames alone) or ``"drive"`` (every frame selection saw: each is described once more);
-    fewer than :data:`~memlog.descriptors.whitening.MIN_SAMPLES` leave the map unwhitened;
+    store it with the map (:mod:`memlog.descriptors.whitening`), fitted, with the patch PCA, on the
+    drive's moving frames (:func:`~memlog.steps.map_log.moving_frames`: one transform per drive,
+    whatever the map keeps; frames not kept are described for it but not stored); fewer than
+    :data:`~memlog.descriptors.whitening.MIN_SAMPLES` leave the map unwhitened;
     ``whiten_dim``: its largest dimension (default: the documented rule); ``workers``: processes
     scoring frames; ``candidates``: with segment selection, score at most this many frames per
     segment with ResMem (the best by their cheap scores, spread over the segment; approximate;
@@ -121,11 +121,9 @@ class MapConfig:
         ("--descriptor-dtype",), "storage of the descriptors (default float32; float16 halves the file)", "outputs",
         choices=("float32", "float16")))
     whiten: bool = setting(True, Flag(
-        ("--no-whiten",), "do not fit and store a PCA-whitening of the descriptors (default: whitened)", "outputs",
+        ("--no-whiten",), "do not fit and store a PCA-whitening of the descriptors (default: whitened, one "
+        "whitening per drive, fitted on its moving frames)", "outputs",
         action="store_true", value=lambda v: False))
-    whiten_on: Literal["kept", "drive"] = setting("kept", Flag(
-        ("--whiten-on",), "frames the whitening is fitted on: kept (default; the network describes the kept frames "
-        "only) or drive (every frame, each described: slower)", "outputs", choices=("kept", "drive")))
     whiten_dim: int | None = setting(None, Flag(
         ("--whiten-dim",), "largest whitened dimension (default 512; never more than half the frames)", "outputs",
         positive_int, metavar="D"))
@@ -155,8 +153,6 @@ class MapConfig:
                                          or self.candidates < 1):
             raise ConfigError(f"candidates must be an integer >= 1 or 'all', got {self.candidates!r}")
         check_ints(self, {"workers": 1, "stride": 1, "whiten_dim": 1}, optional=True)
-        if self.whiten_on not in ("kept", "drive"):
-            raise ConfigError(f"whiten_on must be kept or drive, got {self.whiten_on!r}")
         if self.image_format not in ("jpeg", "png"):
             raise ConfigError(f"image_format must be jpeg or png, got {self.image_format!r}")
         q = self.jpeg_quality
@@ -690,7 +686,7 @@ def _plan(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topic: dic
     describing = None
     if describer is not None:
         describing = ReferenceDescribing(describer, reader, fit_whitening=cfg.whiten and whitening is None,
-                                         fit_on=cfg.whiten_on, whiten_dim=cfg.whiten_dim, whitening=whitening,
+                                         fit_frames=moving_frames(tables, sel_cfg.still_distance), whiten_dim=cfg.whiten_dim, whitening=whitening,
                                          known=known, known_patches=known_patches)
     score_recs = {t: {r["frame_index"]: r for r in recs_by_topic.get(t, [])} for t in cams}
     return MapPlan(cams, kept, score_recs, selections, tables, looks, track, dict(thresholds), crops, choice,

@@ -30,7 +30,7 @@ from memlog.progress import info, progress
 from memlog.selection import ScoreTable, Selection
 from memlog.scoring.motion import Stops, find_stops, moving_index, stops_record
 
-__all__ = ["MapPlan", "MapResult", "Looks", "write_map_log"]
+__all__ = ["MapPlan", "MapResult", "Looks", "moving_frames", "write_map_log"]
 
 Looks = dict[str, dict[int, tuple[np.ndarray | None, np.ndarray | None]]]
 """What selection sees of each frame besides its scores, by topic and frame index: its thumbnail
@@ -136,9 +136,8 @@ def _write_frames(reader: LogReader, cfg: Any, plan: MapPlan, w: MapLogWriter) -
         if frame is None:
             continue
         keep = item.index in plan.kept[item.raw.channel.topic]
-        if describing is not None and (keep or (describing.wants_all_frames
-                                                and frame.index in plan.score_recs[frame.topic])):
-            describing.add(frame, keep)  # with whiten_on "drive", every frame selection saw
+        if describing is not None:
+            describing.add(frame, keep)  # a kept frame, or one the whitening is fitted on
         if not keep:
             continue
         bytes_kept += len(item.raw.data)
@@ -158,10 +157,9 @@ def _described(reader: LogReader, cfg: Any, plan: MapPlan, result: MapResult, dp
         result.whitening = {"sha256": white.sha256, "dim_in": white.dim_in, "dim_out": white.dim_out,
                             "n_fit": white.n_fit, "eps": white.eps}
     elif cfg.whiten:
-        on = "kept frames" if cfg.whiten_on == "kept" else "frames of the drive"
-        result.whitening = {"skipped": f"fewer than {MIN_SAMPLES} {on} described; not whitened"}
-        info(f"{reader.path}: the map is not whitened: whitening is fitted on at least "
-             f"{MIN_SAMPLES} {on}" + (" (--whiten-on drive fits it on every frame)" if cfg.whiten_on == "kept" else ""))
+        result.whitening = {"skipped": f"fewer than {MIN_SAMPLES} frames of the drive; not whitened"}
+        info(f"{reader.path}: the map is not whitened: whitening is fitted on at least {MIN_SAMPLES} frames of the "
+             "drive")
     if plan.describer is None or dpath is None or plan.choice is None:
         return None
     frames, desc, white = described
@@ -208,20 +206,41 @@ def _encoded(reader: LogReader, cams: list[str]) -> dict[str, dict[str, str]]:
     return out
 
 
-def _moving(frames: list[Frame], tables: dict[str, ScoreTable], still_distance: float
-            ) -> tuple[np.ndarray | None, dict[str, Any] | None]:
-    """The kept frames' index with the drive's stops left out (the stops selection found, from
-    the log's motion or the view vectors of every frame it saw: :func:`find_stops`) and how they
-    were found (``extra["stops"]``); None when a topic's table has neither view vectors nor motion
-    for every frame."""
-    out = np.zeros(len(frames), dtype=np.int64)
-    lookup: dict[str, dict[int, int]] = {}
+def drive_stops(tables: dict[str, ScoreTable], still_distance: float) -> dict[str, Stops] | None:
+    """Each topic's stops as selection found them (from the log's motion or the view vectors of every
+    frame it saw: :func:`find_stops`); None when a topic's table has neither view vectors nor
+    motion for every frame."""
     found: dict[str, Stops] = {}
     for t, table in tables.items():
         if table.view is None and (table.motion is None or not table.motion.complete):
-            return None, None
+            return None
         found[t] = find_stops(table.n, table.view, table.motion, still_distance)
-        lookup[t] = dict(zip(table.index.tolist(), moving_index(table.index, found[t].still).tolist()))
+    return found
+
+
+def moving_frames(tables: dict[str, ScoreTable], still_distance: float) -> dict[str, set[int]]:
+    """The frames the map's whitening and patch PCA are fitted on, by topic: the drive's moving frames
+    (every frame selection saw but those of a stop after its first); every frame where stops are not
+    known, or where fewer than :data:`MIN_SAMPLES` frames moved (a camera that crept along: the fit
+    needs that many). Every map of one drive, whatever it keeps, is whitened alike."""
+    found = drive_stops(tables, still_distance)
+    moving = {t: {int(i) for i, still in zip(table.index, found[t].still if found else np.zeros(table.n, bool))
+                  if not still} for t, table in tables.items()}
+    if sum(len(v) for v in moving.values()) < MIN_SAMPLES:
+        return {t: {int(i) for i in table.index} for t, table in tables.items()}
+    return moving
+
+
+def _moving(frames: list[Frame], tables: dict[str, ScoreTable], still_distance: float
+            ) -> tuple[np.ndarray | None, dict[str, Any] | None]:
+    """The kept frames' index with the drive's stops left out (:func:`drive_stops`) and how they
+    were found (``extra["stops"]``); None when the stops are not known."""
+    found = drive_stops(tables, still_distance)
+    if found is None:
+        return None, None
+    out = np.zeros(len(frames), dtype=np.int64)
+    lookup = {t: dict(zip(table.index.tolist(), moving_index(table.index, found[t].still).tolist()))
+              for t, table in tables.items()}
     for k, f in enumerate(frames):
         v = lookup.get(f.topic, {}).get(f.index)
         if v is None:

@@ -1,8 +1,8 @@
 """The staged scores of a reference log, kept so that a rerun does not score again.
 
 ``memlog evaluate`` scores its reference as ``memlog map`` does (:func:`memlog.steps.map.staged_scores_and_looks`:
-the entropy and view of every frame, the detector and ResMem only where they can change the map) once
-for the memorable map and once for the full map. :func:`cached_staged_scores` keeps each result —
+the entropy and view of every frame, the detector and ResMem only where they can change the map) for
+the memorable map. :func:`cached_staged_scores` keeps the result —
 the score records and the frames' looks (thumbnail and view vector) — in one ``.npz`` file in the
 output directory, named by a hash of what made it: the log's identity (path, size, modification
 time), memlog's version, the scoring and selection settings and the window. A file whose key does not
