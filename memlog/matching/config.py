@@ -53,7 +53,7 @@ FALLBACK_REASONS = {
 
 @dataclass(frozen=True)
 class SequenceConfig:
-    """How query frames are matched as sequences (see the module doc).
+    """How query frames are matched as sequences (``docs/method.md``, "Drives, not frames").
 
     ``length``: frames before (and, unless ``causal``, after) each query frame; 0 = single
     frames. ``speeds``: (min, max) relative speed, map coordinate per query coordinate (None:
@@ -71,7 +71,7 @@ class SequenceConfig:
     full map (measured on Nordland's half and quarter maps; windows of 4x were worse on drives
     that change speed; ``info["length_used"]``).
     ``stops``: in the ``frames`` coordinate, drives run along their moving index and a standing
-    query frame takes its stop's match (the module doc's "Stops"). ``speed_prior``: a path's
+    query frame takes its stop's match (``docs/method.md``, "Stops"). ``speed_prior``: a path's
     score loses this much per doubling (or halving) of its speed against 1, ``|log2 v|`` (0: every
     speed in the range alike). ``rerank``: re-rank each
     query's best places by patch features when both tables carry them under one PCA

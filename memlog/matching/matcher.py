@@ -78,8 +78,7 @@ def match_tables(
     pairs, spacing = None, 0.0
     if why_not is None:  # the re-rank's pair scores (each computed once) and the HMM's map spacing
         assert query.patches is not None and reference.patches is not None and reference.patch_pca is not None
-        pairs = (pair_cache if pair_cache is not None else {}).setdefault(
-            "pairs", PairScores(query.patches[perm], reference.patches))
+        pairs = PairScores.kept_in(pair_cache, query.patches, perm, reference.patches)
         spacing = _median_step(np.sort(rc[map_rows]))
 
     def run(qd: F32, rd: F32, hmm: bool = True) -> SequenceMatch:

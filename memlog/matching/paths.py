@@ -53,8 +53,6 @@ class _Problem:
     spacing: float  # median spacing of consecutive map coordinates
     excl: float  # exclusion half-width in coordinate units
     speeds: F64
-    vmin: float
-    vmax: float
     cfg: SequenceConfig
     pace: float  # the speed of a drive at the map's own pace (the speed prior's centre)
 
@@ -114,13 +112,6 @@ def window_rows(centres: I64, offs: I64, run_lo: I64, run_hi: I64, slide: bool) 
         shift = np.maximum(lo[:, 0] - t[:, 0], 0) - np.maximum(t[:, -1] - (hi[:, 0] - 1), 0)
         t = t + shift[:, None]
     return t, (t >= lo) & (t < hi)
-
-
-def _window(p: _Problem, i: int, offs: I64) -> tuple[I64, F64]:
-    """Rows of query ``i``'s window (offset order, :func:`window_rows`) and their coordinate minus ``i``'s."""
-    t, valid = window_rows(np.array([i]), offs, p.run_lo, p.run_hi, False)
-    t = t[0][valid[0]]
-    return t, p.qc[t] - p.qc[i]
 
 
 def _pair_dots(q: F32, rows: F32, t: I64, r: I64) -> F64:

@@ -52,6 +52,18 @@ class PairScores:
         self._keys = np.zeros(0, np.int64)  # sorted (query row * width + map row)
         self._scores = np.zeros(0, np.int64)
 
+    @classmethod
+    def kept_in(cls, cache: dict[str, PairScores] | None, q_patches: npt.NDArray[Any], q_order: I64,
+                r_patches: npt.NDArray[Any]) -> PairScores:
+        """The pair scores of ``q_patches`` (rows taken in ``q_order``) against ``r_patches``, kept in
+        ``cache`` across calls on the same two tables (made there on first use; new without one)."""
+        if cache is not None and "pairs" in cache:
+            return cache["pairs"]
+        pairs = cls(q_patches[q_order], r_patches)
+        if cache is not None:
+            cache["pairs"] = pairs
+        return pairs
+
     def __call__(self, q_rows: I64, r_rows: I64) -> I64:
         """The score of each pair ``(q_rows[n], r_rows[n])``."""
         from memlog.descriptors.patches import pair_scores

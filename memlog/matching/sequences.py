@@ -42,7 +42,7 @@ def match_sequences(
     standing: npt.ArrayLike | None = None,
     pace: float = 1.0,
 ) -> SequenceMatch:
-    """Match the query drive against the reference as sequences (see the module doc).
+    """Match the query drive against the reference as sequences (``docs/method.md``, "Drives, not frames").
 
     ``query`` ``[Q, d]`` and ``reference`` ``[R, d]``: L2-normalised descriptors, rows in drive
     order; ``query_coord`` ``[Q]`` and ``reference_coord`` ``[R]``: their coordinates along the
@@ -249,7 +249,7 @@ def _problem(q: F32, qc: F64, run_lo: I64, run_hi: I64, use: BoolArray, db: Data
     info.update({"speeds": [vmin, vmax], "speed_step": step, "n_speeds": len(speeds), "unit": m.unit,
                  "speed_prior": cfg.speed_prior, "pace": pace})
     return _Problem(q, qc, run_lo, run_hi, db.rows[m.order], m.rc, m.full_row, mu, sd, m.unit, m.spacing,
-                    cfg.exclude * m.unit, speeds, vmin, vmax, cfg, pace)
+                    cfg.exclude * m.unit, speeds, cfg, pace)
 
 
 def _match_windows(p: _Problem, use: BoolArray, ci: I64, z: F64, m: _MapOrder, k: int, out: _SingleFrames) -> None:

@@ -55,7 +55,7 @@ from memlog.selection.config import DEFAULT_CANDIDATES, SelectionConfig
 from memlog.selection.segment import SegmentConfig, cut_segments
 from memlog.selection.staged import MSState, StaticityMode, staticity_mode
 from memlog.steps import map_scoring
-from memlog.steps.map_log import Looks, MapPlan, MapResult, moving_frames, write_map_log
+from memlog.steps.map_log import Looks, MapPlan, MapResult, drive_stops, moving_frames, write_map_log
 from memlog.steps.map_scoring import (CheapFrame, Detected, DetectJob, DetectRule, SegmentJob, cheap_frames,
                                       choose_chunk, detect_chunk, detect_segments, staged_record)
 from memlog.steps.parallel import Executor, InProcess, job_threads, make_executor
@@ -683,11 +683,12 @@ def _plan(reader: LogReader, cfg: MapConfig, cams: list[str], recs_by_topic: dic
             f"{json.dumps(thresholds) if thresholds else 'n/a'}). Low-resolution or dark drives score low "
             "entropy; lower --mt/--st/--et or let memlog pick thresholds with --keep-fraction 0.25"
         )
-    describing = None
+    describing, stops = None, None
     if describer is not None:
+        stops = drive_stops(tables, sel_cfg.still_distance)
         describing = ReferenceDescribing(describer, reader, fit_whitening=cfg.whiten and whitening is None,
-                                         fit_frames=moving_frames(tables, sel_cfg.still_distance), whiten_dim=cfg.whiten_dim, whitening=whitening,
-                                         known=known, known_patches=known_patches)
+                                         fit_frames=moving_frames(tables, stops), whiten_dim=cfg.whiten_dim,
+                                         whitening=whitening, known=known, known_patches=known_patches)
     score_recs = {t: {r["frame_index"]: r for r in recs_by_topic.get(t, [])} for t in cams}
     return MapPlan(cams, kept, score_recs, selections, tables, looks, track, dict(thresholds), crops, choice,
-                   describer, describing, "given" if keep_frames is not None else "selection")
+                   describer, describing, "given" if keep_frames is not None else "selection", stops)

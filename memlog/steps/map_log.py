@@ -30,7 +30,7 @@ from memlog.progress import info, progress
 from memlog.selection import ScoreTable, Selection
 from memlog.scoring.motion import Stops, find_stops, moving_index, stops_record
 
-__all__ = ["MapPlan", "MapResult", "Looks", "moving_frames", "write_map_log"]
+__all__ = ["MapPlan", "MapResult", "Looks", "drive_stops", "moving_frames", "write_map_log"]
 
 Looks = dict[str, dict[int, tuple[np.ndarray | None, np.ndarray | None]]]
 """What selection sees of each frame besides its scores, by topic and frame index: its thumbnail
@@ -43,7 +43,9 @@ class MapPlan:
     indices per topic, every frame's score record, the selections and the tables they were made
     from, the frames' looks, the positions, the selection's thresholds, ResMem's crops (run, and
     what scoring every frame would run), the descriptor (chosen kind, describer, and the
-    describing of the kept frames) and whether the frames were selected or given."""
+    describing of the kept frames), whether the frames were selected or given, and the drive's
+    stops (:func:`drive_stops`, found once for the whitening's frames and the moving index; None:
+    not known, or no descriptor)."""
 
     cams: list[str]
     kept: dict[str, set[int]]
@@ -58,6 +60,7 @@ class MapPlan:
     describer: Any
     describing: ReferenceDescribing | None
     kept_by: str
+    stops: dict[str, Stops] | None = None
 
 
 @dataclass
@@ -167,7 +170,7 @@ def _described(reader: LogReader, cfg: Any, plan: MapPlan, result: MapResult, dp
     sel_cfg = cfg.select
     extra = {"map": str(result.output), "thresholds": plan.thresholds, "mode": sel_cfg.mode, "frames_in": n_in,
              "keep_fraction": sel_cfg.keep_fraction, "descriptor_choice": plan.choice.to_dict()}
-    moving, stops = _moving(frames, plan.tables, sel_cfg.still_distance)
+    moving, stops = _moving(frames, plan.tables, plan.stops, sel_cfg.still_distance)
     return build_table(frames, desc, plan.describer, scores=plan.score_recs, track=plan.track, extra=extra,
                        whitening=white, moving=moving, stops=stops, patches=patches, patch_pca=patch_pca)
 
@@ -218,12 +221,12 @@ def drive_stops(tables: dict[str, ScoreTable], still_distance: float) -> dict[st
     return found
 
 
-def moving_frames(tables: dict[str, ScoreTable], still_distance: float) -> dict[str, set[int]]:
+def moving_frames(tables: dict[str, ScoreTable], found: dict[str, Stops] | None) -> dict[str, set[int]]:
     """The frames the map's whitening and patch PCA are fitted on, by topic: the drive's moving frames
     (every frame selection saw but those of a stop after its first); every frame where stops are not
     known, or where fewer than :data:`MIN_SAMPLES` frames moved (a camera that crept along: the fit
-    needs that many). Every map of one drive, whatever it keeps, is whitened alike."""
-    found = drive_stops(tables, still_distance)
+    needs that many). ``found``: the drive's stops (:func:`drive_stops`). Every map of one drive,
+    whatever it keeps, is whitened alike."""
     moving = {t: {int(i) for i, still in zip(table.index, found[t].still if found else np.zeros(table.n, bool))
                   if not still} for t, table in tables.items()}
     if sum(len(v) for v in moving.values()) < MIN_SAMPLES:
@@ -231,11 +234,10 @@ def moving_frames(tables: dict[str, ScoreTable], still_distance: float) -> dict[
     return moving
 
 
-def _moving(frames: list[Frame], tables: dict[str, ScoreTable], still_distance: float
-            ) -> tuple[np.ndarray | None, dict[str, Any] | None]:
-    """The kept frames' index with the drive's stops left out (:func:`drive_stops`) and how they
-    were found (``extra["stops"]``); None when the stops are not known."""
-    found = drive_stops(tables, still_distance)
+def _moving(frames: list[Frame], tables: dict[str, ScoreTable], found: dict[str, Stops] | None,
+            still_distance: float) -> tuple[np.ndarray | None, dict[str, Any] | None]:
+    """The kept frames' index with the drive's stops ``found`` (:func:`drive_stops`) left out and how
+    they were found (``extra["stops"]``); None when the stops are not known."""
     if found is None:
         return None, None
     out = np.zeros(len(frames), dtype=np.int64)
